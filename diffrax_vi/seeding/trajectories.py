@@ -1,0 +1,144 @@
+"""Initial trajectories: a cheap estimate of the step's motion that the network is fitted to.
+
+Each strategy returns "labels" — positions at the uniform grid `τ_i = i/N`, `i = 0..N` — and
+an estimate of the end momentum `p_{n+1}`. All of them start at the step's own time `t_n` (the
+reference starts its sub-integration at `t = 0`, which is wrong for time-dependent
+Lagrangians).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from ..terms import AbstractMechanicalTerm
+
+__all__ = [
+    "AbstractInitialTrajectory",
+    "IntegratorExtrapolation",
+    "NoExtrapolation",
+    "PreviousStep",
+    "implicit_midpoint",
+]
+
+
+class AbstractInitialTrajectory(eqx.Module):
+    """A way to estimate the motion over one step, sampled on `N + 1` uniform points.
+
+    Subclasses have an attribute `substeps` (`N`, even).
+    """
+
+    def __check_init__(self):
+        n = self.substeps
+        if not isinstance(n, int) or isinstance(n, bool) or n < 2 or n % 2:
+            raise ValueError(
+                f"substeps must be an even integer >= 2 (the seed fit uses Simpson weights on "
+                f"the sub-step grid); got {n!r}"
+            )
+
+    def labels(
+        self, term: AbstractMechanicalTerm, t, h, q0: Array, p0: Array, args
+    ) -> tuple[Array, Array]:
+        """Positions `(N + 1, D)` on `τ_i = i/N` and an estimate of `p_{n+1}`."""
+        raise NotImplementedError
+
+
+def implicit_midpoint(
+    term: AbstractMechanicalTerm, t, h, q0: Array, p0: Array, args, substeps: int, iterations: int
+) -> tuple[Array, Array]:
+    """The variational midpoint rule over `[t, t + h]` in `substeps` equal sub-steps.
+
+    Per sub-step of length `δ` it solves `ϑ(t̃, Q, V) − p_k − (δ/2) f(t̃, Q, V) = 0` for the
+    midpoint velocity `V` (with `Q = q_k + (δ/2) V`, `t̃ = s_k + δ/2`) by a fixed number of
+    Newton iterations, then `q_{k+1} = q_k + δV`, `p_{k+1} = p_k + δ f`. Only `ϑ` and `f` are
+    used, so degenerate systems work too. Returns all positions `(substeps + 1, D)` and the
+    final momentum.
+    """
+    dtype = q0.dtype
+    delta = (h / substeps).astype(dtype)
+    half = (delta / 2).astype(dtype)
+
+    def substep(carry, k):
+        q, p, v = carry
+        tm = t + (k * delta + half).astype(dtype)
+
+        def equation(vel):
+            pm, fm = term.momentum_and_force(tm, q + half * vel, vel, args)
+            return pm - p - half * fm
+
+        def newton(_, vel):
+            r, jac = equation(vel), jax.jacfwd(equation)(vel)
+            return vel - jnp.linalg.solve(jac, r)
+
+        v = jax.lax.fori_loop(0, iterations, newton, v)
+        _, fm = term.momentum_and_force(tm, q + half * v, v, args)
+        q1 = q + delta * v
+        p1 = p + delta * fm
+        return (q1, p1, v), q1
+
+    steps = jnp.arange(substeps, dtype=dtype)
+    (_, p_end, _), qs = jax.lax.scan(substep, (q0, p0, jnp.zeros_like(q0)), steps)
+    return jnp.concatenate([q0[None], qs], axis=0), p_end
+
+
+class IntegratorExtrapolation(AbstractInitialTrajectory):
+    """Integrate the step with the variational midpoint rule on `substeps` sub-steps.
+
+    The reference's default. The positions of the sub-steps are the labels; the final
+    momentum seeds `p_{n+1}`.
+
+    **Arguments:**
+
+    - `substeps`: number of sub-steps `N` (even; the seed fit uses Simpson weights). Default 10.
+    - `newton_iterations`: fixed Newton iterations per sub-step for the midpoint velocity.
+    """
+
+    substeps: int = eqx.field(static=True, default=10)
+    newton_iterations: int = eqx.field(static=True, default=4)
+
+    def labels(self, term, t, h, q0, p0, args):
+        return implicit_midpoint(term, t, h, q0, p0, args, self.substeps, self.newton_iterations)
+
+
+class NoExtrapolation(AbstractInitialTrajectory):
+    """A motionless trajectory: every label is `q_n` and `p_{n+1}` is seeded with `p_n`.
+
+    **Arguments:**
+
+    - `substeps`: size of the (constant) label grid, even. Default 10.
+    """
+
+    substeps: int = eqx.field(static=True, default=10)
+
+    def labels(self, term, t, h, q0, p0, args):
+        del term, t, h, args
+        return jnp.broadcast_to(q0, (self.substeps + 1,) + q0.shape), p0
+
+
+class PreviousStep(AbstractInitialTrajectory):
+    """Warm start: continue the previous step's converged network past its end.
+
+    After each step the solver stores the converged parameters advanced by one step
+    (`σ(wτ + b) ↦ σ(w(1 + ρτ) + b)`, i.e. `b ← b + w`, `w ← ρw` with `ρ` the ratio of step
+    sizes), and the next Newton solve starts from them directly — no trajectory and no fit.
+    The first step (and a step after `made_jump`) uses `first`.
+
+    **Arguments:**
+
+    - `first`: the strategy for the first step. Default `IntegratorExtrapolation()`.
+    """
+
+    first: AbstractInitialTrajectory = IntegratorExtrapolation()
+
+    @property
+    def substeps(self) -> int:
+        return self.first.substeps
+
+    def __check_init__(self):
+        if isinstance(self.first, PreviousStep):
+            raise ValueError("PreviousStep(first=...) needs a strategy that works without history")
+
+    def labels(self, term, t, h, q0, p0, args):
+        return self.first.labels(term, t, h, q0, p0, args)

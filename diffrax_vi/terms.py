@@ -1,0 +1,250 @@
+"""Terms for Lagrangian mechanics on the state `y = (q, p)`.
+
+A variational solver needs two maps of the problem: the momentum `ϑ(t, q, v) = ∂L/∂v` and the
+force `f(t, q, v) = ∂L/∂q`. `LagrangianTerm` derives both from a Lagrangian with `jax.grad`;
+`IODETerm` takes them directly, which covers degenerate (first-order) Lagrangians whose Legendre
+map cannot be inverted. Both are also ordinary diffrax terms: their `vf` is Hamilton's equations
+`(q̇, ṗ) = (v(t, q, p), f(t, q, v))`, so `diffrax.Tsit5()` and friends integrate the same term
+for comparison (an `IODETerm` only when it is given a velocity map).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from jaxtyping import Array, ArrayLike, PyTree
+
+__all__ = ["AbstractMechanicalTerm", "LagrangianTerm", "IODETerm", "unwrap_term"]
+
+
+class AbstractMechanicalTerm(diffrax.AbstractTerm):
+    """A mechanical system in `(q, p)` form described by its momentum and force maps.
+
+    Subclasses provide `momentum_and_force(t, q, v, args) -> (ϑ, f)` and, for use with
+    standard diffrax solvers, `velocity(t, q, p, args)` (the inverse Legendre map).
+    """
+
+    def momentum_and_force(self, t, q, v, args) -> tuple[Array, Array]:
+        raise NotImplementedError
+
+    def momentum(self, t, q, v, args) -> Array:
+        """`ϑ(t, q, v) = ∂L/∂v`."""
+        return self.momentum_and_force(t, q, v, args)[0]
+
+    def force(self, t, q, v, args) -> Array:
+        """`f(t, q, v) = ∂L/∂q`."""
+        return self.momentum_and_force(t, q, v, args)[1]
+
+    def velocity(self, t, q, p, args) -> Array:
+        raise NotImplementedError
+
+    def energy(self, t, q, p, args) -> Array:
+        raise NotImplementedError
+
+    # -- diffrax.AbstractTerm interface: Hamilton's equations ---------------------------------
+    def vf(self, t, y, args):
+        q, p = _split_state(y)
+        v = self.velocity(t, q, p, args)
+        return v.astype(q.dtype), self.force(t, q, v, args).astype(p.dtype)
+
+    def contr(self, t0, t1, **kwargs):
+        return t1 - t0
+
+    def prod(self, vf, control):
+        return jtu.tree_map(lambda x: (control * x).astype(x.dtype), vf)
+
+    def to_ode(self) -> diffrax.ODETerm:
+        """The same Hamiltonian vector field as a plain `diffrax.ODETerm`."""
+        return diffrax.ODETerm(self.vf)
+
+
+def _split_state(y) -> tuple[Array, Array]:
+    if not (isinstance(y, tuple | list) and len(y) == 2):
+        raise ValueError(
+            "the state of a mechanical term must be a pair (q, p) of arrays; got "
+            f"{type(y).__name__}"
+        )
+    return y[0], y[1]
+
+
+def _linear_solve(matrix: Array, rhs: Array) -> Array:
+    """`matrix⁻¹ rhs` in the dtype of `rhs`; LAPACK has no half precision, so below 32 bits the
+    factorisation runs in float32 and only the result is rounded back."""
+    dtype = jnp.result_type(rhs)
+    if jnp.finfo(dtype).bits < 32:
+        work = jnp.float32
+        return jnp.linalg.solve(matrix.astype(work), rhs.astype(work)).astype(dtype)
+    return jnp.linalg.solve(matrix, rhs)
+
+
+def _check_scalar(value, what: str, dtype) -> Array:
+    if jnp.shape(value) != ():
+        raise ValueError(f"{what} must return a scalar; it returned shape {jnp.shape(value)}")
+    if jnp.result_type(value) != jnp.dtype(dtype):
+        raise ValueError(
+            f"{what} returned dtype {jnp.result_type(value)} for {jnp.dtype(dtype)} input; "
+            "keep the Lagrangian in the working precision (no float64 constants)"
+        )
+    return value
+
+
+class LagrangianTerm(AbstractMechanicalTerm):
+    """A mechanical system given by its Lagrangian `L(t, q, v, args) -> scalar`.
+
+    The momentum `∂L/∂v`, the force `∂L/∂q` and the energy `H(t, q, p) = p·v − L` come from
+    `jax.grad`. For standard (non-variational) diffrax solvers the velocity `v(t, q, p)` is
+    obtained by inverting `p = ∂L/∂v` with `legendre_iterations` Newton steps started at
+    `v = 0`: one step is exact when `L` is quadratic in `v` (every mechanical Lagrangian
+    `½ vᵀM(q)v − V(q)`, also with magnetic terms linear in `v`); a general `L` needs more, or a
+    closed-form `velocity`.
+
+    **Arguments:**
+
+    - `lagrangian`: `L(t, q, v, args)`, with `q`, `v` arrays of shape `(D,)`. It may be an
+      `equinox.Module` (e.g. a neural Lagrangian), whose array leaves are differentiable.
+    - `velocity`: optional closed-form inverse Legendre map `v(t, q, p, args)`.
+    - `legendre_iterations`: Newton steps of the numerical inverse (default 1).
+    """
+
+    lagrangian: Callable
+    velocity_map: Callable | None = None
+    legendre_iterations: int = eqx.field(static=True, default=1)
+
+    def __init__(
+        self,
+        lagrangian: Callable,
+        velocity: Callable | None = None,
+        *,
+        legendre_iterations: int = 1,
+    ):
+        if not callable(lagrangian):
+            raise TypeError(f"lagrangian must be callable, got {type(lagrangian).__name__}")
+        if velocity is not None and not callable(velocity):
+            raise TypeError(f"velocity must be callable or None, got {type(velocity).__name__}")
+        if not isinstance(legendre_iterations, int) or legendre_iterations < 1:
+            raise ValueError(
+                f"legendre_iterations must be a positive int, got {legendre_iterations!r}"
+            )
+        self.lagrangian = lagrangian
+        self.velocity_map = velocity
+        self.legendre_iterations = legendre_iterations
+
+    def __call__(self, t, q, v, args) -> Array:
+        """Evaluate `L(t, q, v, args)`, checking that it is a scalar of `q`'s dtype."""
+        return _check_scalar(self.lagrangian(t, q, v, args), "the Lagrangian", jnp.result_type(q))
+
+    def momentum_and_force(self, t, q, v, args):
+        f, p = jax.grad(self.__call__, argnums=(1, 2))(t, q, v, args)
+        return p, f
+
+    def velocity(self, t, q, p, args):
+        """Inverse Legendre map `p ↦ v`: closed form if given, else Newton from `v = 0`."""
+        if self.velocity_map is not None:
+            return self.velocity_map(t, q, p, args)
+        momentum = lambda v: jax.grad(self.__call__, argnums=2)(t, q, v, args)
+
+        def newton(_, v):
+            mass = jax.jacfwd(momentum)(v)
+            return v - _linear_solve(mass, momentum(v) - p)
+
+        return jax.lax.fori_loop(0, self.legendre_iterations, newton, jnp.zeros_like(q))
+
+    def energy(self, t, q, p, args):
+        """`H(t, q, p) = p·v − L(t, q, v)` with `v` from the inverse Legendre map."""
+        v = self.velocity(t, q, p, args)
+        return jnp.sum(p * v) - self(t, q, v, args)
+
+
+class IODETerm(AbstractMechanicalTerm):
+    """A mechanical system given directly by its momentum and force maps.
+
+    This is the form of the reference's implicit ODEs (IODEs), and it is needed for degenerate
+    Lagrangians (linear in the velocities, e.g. the reference's pendulum), for which
+    `∂²L/∂v²` is singular and `v(q, p)` does not exist: only the variational solvers, which
+    evaluate `ϑ` and `f` along a trial trajectory, can integrate those. A standard diffrax
+    solver can use this term only if a `velocity` map `v(t, q, p, args)` is supplied.
+
+    **Arguments:**
+
+    - `momentum`: `ϑ(t, q, v, args) -> (D,)`, the momentum `∂L/∂v`.
+    - `force`: `f(t, q, v, args) -> (D,)`, the force `∂L/∂q`.
+    - `velocity`: optional `v(t, q, p, args)` (the reference's `v̄`), for standard solvers.
+    - `hamiltonian`: optional `H(t, q, p, args)`, returned by `energy`.
+    """
+
+    momentum_map: Callable
+    force_map: Callable
+    velocity_map: Callable | None = None
+    hamiltonian: Callable | None = None
+
+    def __init__(
+        self,
+        momentum: Callable,
+        force: Callable,
+        velocity: Callable | None = None,
+        hamiltonian: Callable | None = None,
+    ):
+        for name, fn in (("momentum", momentum), ("force", force)):
+            if not callable(fn):
+                raise TypeError(f"{name} must be callable, got {type(fn).__name__}")
+        for name, fn in (("velocity", velocity), ("hamiltonian", hamiltonian)):
+            if fn is not None and not callable(fn):
+                raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
+        self.momentum_map = momentum
+        self.force_map = force
+        self.velocity_map = velocity
+        self.hamiltonian = hamiltonian
+
+    def momentum_and_force(self, t, q, v, args):
+        p = jnp.asarray(self.momentum_map(t, q, v, args))
+        f = jnp.asarray(self.force_map(t, q, v, args))
+        for name, x in (("momentum", p), ("force", f)):
+            if x.shape != q.shape:
+                raise ValueError(f"the {name} map returned shape {x.shape}; expected {q.shape}")
+            if x.dtype != q.dtype:
+                raise ValueError(
+                    f"the {name} map returned dtype {x.dtype} for {q.dtype} input; keep it in "
+                    "the working precision"
+                )
+        return p, f
+
+    def velocity(self, t, q, p, args):
+        if self.velocity_map is None:
+            raise ValueError(
+                "this IODETerm has no velocity map v(t, q, p, args), so standard diffrax solvers "
+                "(Tsit5, Dopri8, ...) cannot integrate it. Degenerate Lagrangians can only be "
+                "integrated by the variational solvers (NetworkVI); pass velocity=... to "
+                "IODETerm to use a standard solver."
+            )
+        return self.velocity_map(t, q, p, args)
+
+    def energy(self, t, q, p, args):
+        if self.hamiltonian is None:
+            raise ValueError("this IODETerm was built without a hamiltonian=H(t, q, p, args)")
+        return self.hamiltonian(t, q, p, args)
+
+
+def unwrap_term(terms: PyTree[Any]) -> tuple[AbstractMechanicalTerm, ArrayLike]:
+    """Return `(term, direction)` from what diffrax hands a solver.
+
+    `diffeqsolve` wraps the user's term as `WrapTerm(term, direction)` to normalise the
+    direction of time; a solver that needs the term's own methods unwraps it here and works in
+    real time `direction * t`. Manual stepping passes the bare term (direction 1).
+    """
+    direction = 1
+    while not isinstance(terms, AbstractMechanicalTerm):
+        inner = getattr(terms, "term", None)
+        if inner is None or not hasattr(terms, "direction"):
+            raise TypeError(
+                "a variational solver needs a LagrangianTerm or IODETerm; got "
+                f"{type(terms).__name__}"
+            )
+        direction = direction * terms.direction
+        terms = inner
+    return terms, direction
