@@ -1,0 +1,495 @@
+"""The orthogonal greedy fit of a shallow network to sampled data.
+
+`oga_fit` chooses hidden neurons `(w_k, b_k)` one at a time from a dictionary and refits all
+output weights after every choice, so that `u(t) = sum_k c_k sigma(w_k t + b_k)` approximates
+a target in the quadrature-weighted norm `||f||_w^2 = sum_j w_j f(t_j)^2`. It is the seed
+(initial guess) of the network integrators' Newton solve.
+
+Everything happens in the "scaled" space: each node's value is multiplied by `sqrt(w_j)`
+(and by the optional modulation), so weighted inner products become Euclidean ones, and the
+whole dictionary is multiplied by one power of two so that its largest row norm lies in
+`[1, 2)`. The loop is a `lax.while_loop` with static shapes; selected columns live in a fixed
+`(M, K)` design whose unused columns are zero.
+
+Differences from the reference implementation (NonlinearIntegrators.jl), on purpose:
+
+- the loop also stops once the residual is at rounding level (`8 eps` relative, including a
+  zero target) instead of picking further atoms against rounding noise; the remaining neurons
+  become placeholders;
+- placeholders are drawn from atoms that are usable (not numerically zero on the nodes) and
+  not selected, centred in equal parts of the candidate list; the reference could place
+  neurons that vanish on `[0, 1]` (dead ReLU neurons give zero Jacobian columns);
+- the refit's rank cut is `min(M, k) eps` at every precision, with zero coefficients beyond
+  the numerical rank (the reference's float32/float64 solve returns the minimum-norm
+  solution there, and its float16 solve has no rank cut).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ..activations import check_activation
+from .config import OGA
+from .fits import guarded_solve
+from .numerics import as_dtype, eps, norm2, power_of_two_scale, sqrt_eps
+from .qr import QRState, qr_append, qr_init
+from .symmetry import AbstractSymmetry, NoSymmetry
+
+__all__ = ["OGAResult", "oga_fit"]
+
+
+class OGAResult(eqx.Module):
+    """The outcome of `oga_fit`: a shallow network plus diagnostics.
+
+    All arrays are in the working dtype `T` of the fit (or int32). With `G` the number of
+    greedy steps (`width` divided by the neurons per atom of the symmetry, i.e. `width` for
+    `NoSymmetry`):
+
+    **Arguments:**
+
+    - `W`: `(width,)` hidden weights.
+    - `b`: `(width,)` biases.
+    - `c`: `(width,)` output weights; zero for placeholder neurons.
+    - `atoms`: `(G,)` 0-based dictionary indices accepted by the greedy loop, in order, and
+        `-1` for steps that were not taken.
+    - `placed`: number of neurons placed by the greedy loop (placeholders excluded).
+    - `residual`: the weighted residual norm `sqrt(sum_j w_j (u(t_j) - y_j)^2)` of the greedy
+        fit, in true (unscaled) units.
+    - `gains`: `(G,)` rank gain of each accepted atom (norm of the part of its column
+        orthogonal to the previously selected ones, in the dictionary's power-of-two scaled
+        units); zero for steps not taken.
+    - `rejected`: number of chosen atoms refused when appending their column to the QR
+        factorisation.
+    """
+
+    W: Array
+    b: Array
+    c: Array
+    atoms: Array
+    placed: Array
+    residual: Array
+    gains: Array
+    rejected: Array
+
+
+class _Dictionary(NamedTuple):
+    """The scaled dictionary of one fit (independent of the target)."""
+
+    atom_w: Array
+    atom_b: Array
+    psi_t: Array  # scaled rows, stored transposed; zero for unusable atoms
+    norms: Array
+    usable: Array
+    colscale: Array  # sqrt(weights) * modulation * scale
+    scale: Array
+
+
+class _Carry(NamedTuple):
+    attempt: Array
+    step: Array
+    ncols: Array
+    rejected: Array
+    stopped: Array
+    qr: QRState
+    design: Array
+    x: Array
+    resid: Array
+    avail: Array  # usable and not blocked
+    pending: Array  # coherence blocking of the last accepted atom not yet applied
+    pending_best: Array
+    slot_w: Array  # (w, b) of the atom placed at each greedy step
+    slot_b: Array
+    atoms: Array
+    gains: Array
+
+
+def oga_fit(
+    config: OGA,
+    activation: Callable,
+    nodes: Array,
+    weights: Array,
+    y: Array,
+    width: int,
+    *,
+    bias_interval: tuple[float, float] = (-math.pi, math.pi),
+    dict_amount: int = 400,
+    modulation: Array | None = None,
+    symmetry: AbstractSymmetry | None = None,
+) -> OGAResult:
+    """Fit `u(t) = sum_k c_k activation(W_k t + b_k)` to `y` by orthogonal greedy selection.
+
+    Each greedy step scores every usable, unblocked dictionary atom against the current
+    residual (`config.selection`), takes the best one (lowest index on ties), appends its
+    column to an incremental QR factorisation (refused, blocked and counted in `rejected` if
+    it adds no new direction), refits all output weights (`config.fit`, made finite by a
+    ridged fallback), and blocks the atom (and, with `config.coherence`, its near duplicates).
+    The loop ends when `width` neurons are placed, when no usable atom is left, after
+    `9 G + 8` attempts, or when the residual has dropped to rounding level
+    (`<= 8 eps ||sqrt(w) y||`, which includes `y = 0`). Neurons left over are then filled with
+    distinct usable atoms at zero output weight (`config.fill_unused`).
+
+    Pure JAX with static shapes: it can be called under `jax.jit` and `jax.vmap` (e.g. over
+    a batch of targets). Called eagerly it compiles once per static configuration. Every
+    array and constant stays in the dtype `T` of `nodes`.
+
+    **Arguments:**
+
+    - `config`: the `OGA` configuration (static).
+    - `activation`: the elementwise activation `sigma`; it must keep the dtype `T`
+        (checked, a promoting activation raises `ValueError`). Must be hashable.
+    - `nodes`: `(M,)` sample points `t_j` in `[0, 1]`; their dtype is the working dtype `T`.
+    - `weights`: `(M,)` positive quadrature weights `w_j` (e.g. composite Simpson), dtype `T`.
+    - `y`: `(M,)` target values, dtype `T`.
+    - `width`: number of neurons `S` (a positive Python int).
+    - `bias_interval`: `(lo, hi)` with `lo < hi`, the bias range of grid dictionaries.
+    - `dict_amount`: the dictionary resolution (number of bias intervals for `BiasGrid1d`).
+    - `modulation`: optional `(M,)` factor multiplying every atom (e.g. `t (1 - t)` for an
+        ansatz that vanishes at both ends); dtype `T`.
+    - `symmetry`: how atoms map to neurons; `None` (the default) means `NoSymmetry()`, the
+        only one that exists so far.
+
+    **Returns:**
+
+    An `OGAResult`.
+    """
+    if symmetry is None:
+        symmetry = NoSymmetry()
+    nodes, weights, y, modulation, bias_interval = _validate(
+        config,
+        activation,
+        nodes,
+        weights,
+        y,
+        width,
+        bias_interval,
+        dict_amount,
+        modulation,
+        symmetry,
+    )
+    return _oga_fit_jit(
+        config,
+        activation,
+        nodes,
+        weights,
+        y,
+        width,
+        bias_interval,
+        dict_amount,
+        modulation,
+        symmetry,
+    )
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _validate(
+    config, activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
+):
+    if not isinstance(config, OGA):
+        raise ValueError(f"oga_fit needs an OGA configuration, got {config!r}")
+    if not isinstance(symmetry, AbstractSymmetry):
+        raise ValueError(f"symmetry must be an AbstractSymmetry instance, got {symmetry!r}")
+    if not callable(activation):
+        raise ValueError(f"activation must be callable, got {activation!r}")
+
+    arrays = {"nodes": nodes, "weights": weights, "y": y}
+    if modulation is not None:
+        arrays["modulation"] = modulation
+    arrays = {name: jnp.asarray(value) for name, value in arrays.items()}
+    dtype = arrays["nodes"].dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"nodes must have a floating dtype, got {dtype}")
+    for name, value in arrays.items():
+        if value.ndim != 1:
+            raise ValueError(f"{name} must be one-dimensional, got shape {value.shape}")
+        if value.dtype != dtype:
+            raise ValueError(
+                f"{name} has dtype {value.dtype} but nodes have dtype {dtype}; "
+                "all inputs must share the working dtype"
+            )
+    num_nodes = arrays["nodes"].shape[0]
+    if num_nodes < 1:
+        raise ValueError("nodes must not be empty")
+    for name, value in arrays.items():
+        if value.shape[0] != num_nodes:
+            raise ValueError(
+                f"{name} has length {value.shape[0]} but nodes have length {num_nodes}"
+            )
+    if not isinstance(arrays["weights"], jax.core.Tracer):
+        w = np.asarray(arrays["weights"])
+        if not (np.all(np.isfinite(w)) and np.all(w > 0)):
+            raise ValueError("quadrature weights must be finite and positive")
+
+    if not _is_int(width) or width < 1:
+        raise ValueError(f"width must be a positive integer, got {width!r}")
+    symmetry.check_width(int(width))
+    if not _is_int(dict_amount) or dict_amount < 1:
+        raise ValueError(f"dict_amount must be a positive integer, got {dict_amount!r}")
+    try:
+        lo, hi = (float(v) for v in bias_interval)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"bias_interval must be a pair of real numbers (lo, hi), got {bias_interval!r}"
+        ) from err
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(
+            f"bias_interval must be finite and increasing (lo < hi), got {bias_interval!r}"
+        )
+    check_activation(activation, dtype)
+    return arrays["nodes"], arrays["weights"], arrays["y"], arrays.get("modulation"), (lo, hi)
+
+
+@eqx.filter_jit
+def _oga_fit_jit(
+    config, activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
+):
+    return _oga_fit_impl(
+        config,
+        activation,
+        nodes,
+        weights,
+        y,
+        int(width),
+        bias_interval,
+        int(dict_amount),
+        modulation,
+        symmetry,
+    )
+
+
+def _build_dictionary(
+    config: OGA,
+    activation: Callable,
+    nodes: Array,
+    weights: Array,
+    bias_interval: tuple[float, float],
+    dict_amount: int,
+    modulation: Array | None,
+    symmetry: AbstractSymmetry,
+) -> _Dictionary:
+    dtype = nodes.dtype
+    zero = as_dtype(0, dtype)
+    colscale = jnp.sqrt(weights)
+    if modulation is not None:
+        colscale = colscale * modulation
+    table = config.dictionary.atoms_np(bias_interval, dict_amount, dtype)
+    atom_w = jnp.asarray(table[:, 0], dtype=dtype)
+    atom_b = jnp.asarray(table[:, 1], dtype=dtype)
+    psi = symmetry.scoring_rows(activation, atom_w, atom_b, nodes, colscale)
+    norms = norm2(psi, axis=1)
+    finite = jnp.isfinite(norms)
+    scale = power_of_two_scale(jnp.max(jnp.where(finite, norms, zero)))
+    norms = norms * scale
+    finite_max = jnp.max(jnp.where(finite, norms, zero))
+    nfloor = sqrt_eps(dtype) * finite_max if config.norm_guard else zero
+    usable = finite & (norms > nfloor)
+    # Scaling is exact (a power of two); unusable atoms are zeroed so no Inf/NaN reaches a
+    # product. Stored one column per atom: `r @ psi_t` streams contiguous memory.
+    psi_t = jnp.where(usable[None, :], psi.T * scale, zero)
+    return _Dictionary(atom_w, atom_b, psi_t, norms, usable, colscale * scale, scale)
+
+
+def _oga_fit_impl(
+    config: OGA,
+    activation: Callable,
+    nodes: Array,
+    weights: Array,
+    y: Array,
+    width: int,
+    bias_interval: tuple[float, float],
+    dict_amount: int,
+    modulation: Array | None,
+    symmetry: AbstractSymmetry,
+) -> OGAResult:
+    dic = _build_dictionary(
+        config, activation, nodes, weights, bias_interval, dict_amount, modulation, symmetry
+    )
+    return _greedy(config, activation, dic, nodes, jnp.sqrt(weights) * y, width, symmetry)
+
+
+def _greedy(
+    config: OGA,
+    activation: Callable,
+    dic: _Dictionary,
+    nodes: Array,
+    yhat: Array,
+    width: int,
+    symmetry: AbstractSymmetry,
+) -> OGAResult:
+    dtype = yhat.dtype
+    num_nodes = yhat.shape[0]
+    zero = as_dtype(0, dtype)
+    per_atom = symmetry.neurons_per_atom
+    percol = symmetry.columns_per_atom
+    nsteps = width // per_atom
+    maxcols = nsteps * percol
+    maxattempts = 9 * nsteps + 8
+    cap = as_dtype(1, dtype) - sqrt_eps(dtype)
+    min_gain = config.selection.min_gain(dtype)
+    psi_t, norms = dic.psi_t, dic.norms
+    atom_index = jnp.arange(norms.shape[0], dtype=jnp.int32)
+
+    # Rounding-level residual test, on max-abs-normalised vectors (no overflow).
+    ymax = jnp.max(jnp.abs(yhat))
+    ysafe = jnp.where(ymax > 0, ymax, as_dtype(1, dtype))
+    tol = as_dtype(8, dtype) * eps(dtype) * norm2(yhat / ysafe)
+
+    def negligible(resid):
+        return (ymax == 0) | (norm2(resid / ysafe) <= tol)
+
+    def coherent(dots, best):
+        """Atoms whose |cosine| with atom `best` exceeds the cap."""
+        return jnp.abs(dots) > cap * norms * norms[best]
+
+    def cond(c: _Carry):
+        return (c.attempt < maxattempts) & (c.step < nsteps) & ~c.stopped
+
+    def body(c: _Carry) -> _Carry:
+        # One pass over the dictionary gives the projections of the residual and, when the
+        # previous attempt accepted an atom, its coherence products (blocking deferred to here).
+        if config.coherence:
+            prods = jnp.stack([c.resid, psi_t[:, c.pending_best]]) @ psi_t
+            proj, dots = jnp.abs(prods[0]), prods[1]
+            avail = c.avail & ~(c.pending & coherent(dots, c.pending_best))
+        else:
+            proj, avail = jnp.abs(c.resid @ psi_t), c.avail
+        scores = config.selection.scores(proj, norms, psi_t, c.qr)
+        ok = avail & jnp.isfinite(proj) & jnp.isfinite(scores)
+        scores = jnp.where(ok, scores, as_dtype(-1, dtype))
+        best = jnp.argmax(scores).astype(jnp.int32)
+        stop = (scores[best] < 0) | negligible(c.resid)
+
+        wa, ba = dic.atom_w[best], dic.atom_b[best]
+        row = psi_t[:, best]
+        columns = symmetry.fit_columns(activation, wa, ba, nodes, dic.colscale, row)
+        qr = c.qr
+        gain = zero
+        good = jnp.ones((), bool)
+        for j in range(percol):
+            qr, rho, accepted = qr_append(qr, columns[:, j], min_gain)
+            gain = rho if j == 0 else jnp.minimum(gain, rho)
+            good = good & accepted
+        accept = ~stop & good
+        refuse = ~stop & ~good
+
+        # Tentative accepted state; kept only if `accept` (all small arrays).
+        design = c.design
+        for j in range(percol):
+            at = jnp.arange(maxcols) == c.ncols + j
+            design = jnp.where(at[None, :], columns[:, j : j + 1], design)
+        ncols = c.ncols + percol
+        x = guarded_solve(config.fit, design, yhat, qr, ncols)
+        resid = yhat - design @ x
+        at_step = accept & (jnp.arange(nsteps) == c.step)
+
+        def keep(new, old):
+            return jnp.where(accept, new, old)
+
+        return _Carry(
+            attempt=c.attempt + 1,
+            step=c.step + accept.astype(jnp.int32),
+            ncols=keep(ncols, c.ncols),
+            rejected=c.rejected + refuse.astype(jnp.int32),
+            stopped=stop,
+            qr=QRState(*(keep(n, o) for n, o in zip(qr, c.qr, strict=True))),
+            design=keep(design, c.design),
+            x=keep(x, c.x),
+            resid=keep(resid, c.resid),
+            avail=avail & (stop | (atom_index != best)),
+            pending=accept,
+            pending_best=keep(best, c.pending_best),
+            slot_w=jnp.where(at_step, wa, c.slot_w),
+            slot_b=jnp.where(at_step, ba, c.slot_b),
+            atoms=jnp.where(at_step, best, c.atoms),
+            gains=jnp.where(at_step, gain, c.gains),
+        )
+
+    int0 = jnp.zeros((), jnp.int32)
+    init = _Carry(
+        attempt=int0,
+        step=int0,
+        ncols=int0,
+        rejected=int0,
+        stopped=jnp.zeros((), bool),
+        qr=qr_init(num_nodes, maxcols, dtype),
+        design=jnp.zeros((num_nodes, maxcols), dtype),
+        x=jnp.zeros((maxcols,), dtype),
+        resid=yhat,
+        avail=dic.usable,
+        pending=jnp.zeros((), bool),
+        pending_best=int0,
+        slot_w=jnp.zeros((nsteps,), dtype),
+        slot_b=jnp.zeros((nsteps,), dtype),
+        atoms=jnp.full((nsteps,), -1, jnp.int32),
+        gains=jnp.zeros((nsteps,), dtype),
+    )
+    out = lax.while_loop(cond, body, init)
+
+    slot_w, slot_b = out.slot_w, out.slot_b
+    if config.fill_unused:
+        # If the loop ran out of attempts right after accepting an atom, that atom's coherence
+        # block is still pending; the fill excludes the atom itself but may take a close
+        # neighbour. (Applying the block here costs a dictionary pass, slow under `vmap`.)
+        def fill(wb):
+            return _fill_unused(*wb, out.step, out.avail, out.atoms, dic)
+
+        slot_w, slot_b = lax.cond(out.step < nsteps, fill, lambda wb: wb, (slot_w, slot_b))
+    W, B = symmetry.neurons(slot_w, slot_b)
+
+    return OGAResult(
+        W=W,
+        b=B,
+        c=symmetry.coefficients(out.x * dic.scale, width),
+        atoms=out.atoms,
+        placed=out.step * per_atom,
+        residual=norm2(out.resid),
+        gains=out.gains,
+        rejected=out.rejected,
+    )
+
+
+def _fill_unused(slot_w, slot_b, step, avail, atoms, dic):
+    """Give the atom slots `step..G-1` distinct atoms, spread over the candidates.
+
+    Candidates are the available atoms: usable (not numerically zero on the nodes) and not
+    blocked (neither selected, refused, nor coherent with a selected atom). If there are fewer
+    of them than slots (e.g. float16, where the coherence guard blocks wide neighbourhoods),
+    the usable atoms not selected by the loop are candidates, and failing that all atoms not
+    selected. The `f`-th of `n` fills takes the candidate of rank `floor((2f + 1) ncand / (2n))`,
+    the centre of the `f`-th of `n` equal parts of the candidate list, so fills are distinct
+    when `ncand >= n`.
+    """
+    nsteps = slot_w.shape[0]
+    nfill = nsteps - step
+    num_atoms = avail.shape[0]
+    index = jnp.where(atoms >= 0, atoms, num_atoms)  # untaken steps point out of range
+    unselected = jnp.ones((num_atoms,), bool).at[index].set(False, mode="drop")
+    usable = dic.usable & unselected
+    cand = jnp.where(
+        jnp.sum(avail, dtype=jnp.int32) >= nfill,
+        avail,
+        jnp.where(jnp.sum(usable, dtype=jnp.int32) >= nfill, usable, unselected),
+    )
+    counts = jnp.cumsum(cand, dtype=jnp.int32)
+    ncand = counts[-1]
+    f = jnp.arange(nsteps, dtype=jnp.int32) - step
+    rank = ((2 * f + 1) * ncand) // (2 * jnp.maximum(nfill, 1))
+    # The candidate of rank r sits at the first position whose running count exceeds r.
+    idx = jnp.searchsorted(counts, rank + 1, side="left").astype(jnp.int32)
+    idx = jnp.minimum(idx, counts.shape[0] - 1)
+    live = f >= 0
+    return (
+        jnp.where(live, dic.atom_w[idx], slot_w),
+        jnp.where(live, dic.atom_b[idx], slot_b),
+    )
