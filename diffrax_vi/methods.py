@@ -45,7 +45,7 @@ def ShallowNet(
     initial_trajectory_method: AbstractInitialTrajectory | None = None,
     initial_guess_method: OGA | None = None,
     bias_interval: tuple[float, float] = (-math.pi, math.pi),
-    dict_amount: int = 400,
+    dict_amount: int = 4000,
     regularization_factor: float | None = None,
     max_iterations: int | None = None,
     **options: Any,
@@ -60,7 +60,7 @@ def ShallowNet(
     - `initial_trajectory_method`: `IntegratorExtrapolation()` (default), `NoExtrapolation()`
       or `PreviousStep()`.
     - `initial_guess_method`: an OGA configuration (default `OGA1d()`).
-    - `bias_interval`, `dict_amount`: the OGA dictionary (defaults `(-π, π)`, 400).
+    - `bias_interval`, `dict_amount`: the OGA dictionary (defaults `(-π, π)`, 4000).
     - `regularization_factor`: if given, use `RegularisedNewton(lam=regularization_factor)`,
       the reference's Newton with a diagonal shift, instead of the default root finder.
     - `max_iterations`: iteration cap per step (`root_find_max_steps`).

@@ -1,20 +1,27 @@
 """Root finders for the per-step variational equations.
 
 The equations of a network step are square but rank-deficient by construction (redundant
-neurons, zero output weights, the rescaling symmetry of ReLUᵏ), so a plain LU Newton step is
-undefined exactly where the solution lives. Two damped Newton methods handle this:
+neurons, zero output weights, the rescaling symmetry of ReLUᵏ, nearly collinear neurons), so a
+plain LU Newton step is undefined exactly where the solution lives. Two damped Newton methods
+handle this:
 
-* `RegularisedNewton`: `d = −(J + λI)⁻¹ F`, the reference's `regularization_factor` (λ is added
-  to the raw diagonal, so the pairing of equations and unknowns matters);
-* `LevenbergMarquardt`: `d = −(JᵀJ + μI)⁻¹ JᵀF` with `μ = λ·‖F‖`, which converges
-  quadratically to non-isolated roots (Yamashita–Fukushima) and always gives a descent
-  direction for `½‖F‖²`.
+* `LevenbergMarquardt`: `d = −(JᵀJ + μI)⁻¹ JᵀF` with `μ = λ‖F‖`, which converges fast to roots
+  that form a manifold (singular `J` at the solution) and always gives a descent direction;
+* `RegularisedNewton`: `d = −(J + λI)⁻¹ F`, the reference's `regularization_factor` (λ is
+  added to the raw diagonal, so the pairing of equations and unknowns matters).
 
 Both take an Armijo backtracking line search on `½‖F‖²`, form the Jacobian densely with
 `jax.jacfwd`, and are `optimistix.AbstractRootFinder`s, so `optimistix.root_find` supplies
-implicit differentiation of the converged step. Tolerances left as `None` are set from the
-machine epsilon of the unknowns' dtype. Any optimistix root finder (`optx.Newton`,
-`optx.Dogleg`, `optx.LevenbergMarquardt`, ...) may be used in their place.
+implicit differentiation of a converged step. Any optimistix root finder (`optx.Newton`,
+`optx.Dogleg`, ...) may be used in their place.
+
+**When is a step converged?** Tolerances left as `None` scale with the machine epsilon of the
+unknowns' dtype (`default_tolerances`). Because the Jacobian is numerically rank-deficient, part
+of the residual lies in directions the iteration cannot reduce and that do not move the step's
+result. So besides a residual at `ftol`, a step also counts as converged when the residual has
+stopped falling, is below `floor`, and the caller's outputs of interest (passed as the callable
+`options["outputs"]`; `NetworkVI` passes `y ↦ (q_{n+1}, p_{n+1})`) no longer change beyond a
+few ulps. A residual that stops falling anywhere else is a failure.
 """
 
 from __future__ import annotations
@@ -38,40 +45,61 @@ def default_tolerances(dtype) -> dict[str, float]:
     `options["scale"]` (default 1; `NetworkVI` passes `1 + max(|q_n|, |p_n|)`).
 
     - `ftol = 64·eps`: converged when `max|F| ≤ ftol·scale`;
-    - `floor = eps^(3/4)`: also converged when the residual has stopped decreasing (it failed
-      to halve `patience_floor` iterations in a row) while below `floor·scale`: it sits at its
-      round-off floor, which for a network step lies well above `eps`.
+    - `floor = sqrt(eps)`: also converged when the residual is below `floor·scale` and has
+      stopped falling (it did not halve for 3 iterations) while the outputs changed by at most
+      `otol·(1 + |output|)` in the last iteration (`otol = 64·eps`), or by at most
+      `otol_slow = eps^(3/4)` after `patience_floor` iterations without the residual halving,
+      or when the line search finds no decrease at all;
+    - `floor_moving = eps^(5/8)`: also converged when the residual is below `floor_moving·scale`
+      and did not halve for `patience_floor` iterations although the outputs still move: the
+      iterate then slides along a manifold of near-roots whose outputs differ by less than the
+      equations can resolve;
+    - without `options["outputs"]`: converged when the residual did not halve for
+      `patience_floor` iterations while below `eps^(3/4)·scale`.
     """
     eps = float(jnp.finfo(dtype).eps)
-    return dict(ftol=64 * eps, floor=eps**0.75)
+    return dict(
+        ftol=64 * eps, floor=eps**0.5, floor_moving=eps**0.625, otol=64 * eps,
+        otol_slow=eps**0.75, floor_no_outputs=eps**0.75,
+    )
 
 
 class _DampedNewtonState(eqx.Module):
     f: Array  # flat residual at the current iterate
+    out: Array  # flat outputs of interest at the current iterate
+    out_change: Array  # max |Δ outputs| / (1 + |outputs|) over the last iteration
     fbest: Array  # smallest max|F| met so far
     idle: Array  # iterations since max|F| last fell below half of fbest
     result: optx.RESULTS
     stalls: Array  # consecutive failed line searches
 
 
+def _flat_outputs(options, y, dtype) -> Array:
+    outputs = options.get("outputs")
+    if outputs is None:
+        return jnp.zeros((0,), dtype)
+    return ravel_pytree(outputs(y))[0].astype(dtype)
+
+
 class AbstractDampedNewton(optx.AbstractRootFinder):
     """Damped Newton with a dense Jacobian and Armijo backtracking on `½‖F‖²`.
 
-    Subclasses choose the step from the Jacobian `J` and residual `F`.
+    Subclasses choose the step from the Jacobian `J` and residual `F` (`direction`).
     """
 
-    lam: float
-    ftol: float | None
-    floor: float | None
-    max_backtracks: int
-    max_stalls: int
-    patience_floor: int
-    patience: int
+    lam: eqx.AbstractVar[float]
+    ftol: eqx.AbstractVar[float | None]
+    floor: eqx.AbstractVar[float | None]
+    max_backtracks: eqx.AbstractVar[int]
+    max_stalls: eqx.AbstractVar[int]
+    patience_floor: eqx.AbstractVar[int]
+    patience: eqx.AbstractVar[int]
 
     def direction(self, jac: Array, f: Array) -> Array:
+        """The step from the Jacobian and the residual."""
         raise NotImplementedError
 
-    def _tols(self, dtype):
+    def _tols(self, dtype) -> dict[str, float]:
         tol = default_tolerances(dtype)
         for name in ("ftol", "floor"):
             if getattr(self, name) is not None:
@@ -79,20 +107,22 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         return tol
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del options, aux_struct, tags
+        del aux_struct, tags
         f, _ = fn(y, args)
         flat_f, _ = ravel_pytree(f)
-        flat_y, _ = ravel_pytree(y)
+        dtype = flat_f.dtype
         return _DampedNewtonState(
             f=flat_f,
-            fbest=jnp.full((), jnp.inf, flat_f.dtype),
+            out=_flat_outputs(options, y, dtype),
+            out_change=jnp.full((), jnp.inf, dtype),
+            fbest=jnp.full((), jnp.inf, dtype),
             idle=jnp.array(0, jnp.int32),
             result=optx.RESULTS.successful,
             stalls=jnp.array(0, jnp.int32),
         )
 
     def step(self, fn, y, args, options, state, tags):
-        del options, tags
+        del tags
         flat_y, unravel = ravel_pytree(y)
         dtype = flat_y.dtype
 
@@ -100,115 +130,162 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
 
-        def residual_with_copy(v):
+        def residual_and_copy(v):
             f, aux = residual(v)
             return f, (f, aux)
 
-        jac, (f, aux) = jax.jacfwd(residual_with_copy, has_aux=True)(flat_y)
+        jac, (f, aux) = jax.jacfwd(residual_and_copy, has_aux=True)(flat_y)
         d = self.direction(jac, f)
         slope = jnp.dot(f, jac @ d)  # derivative of ½‖F(y + a d)‖² at a = 0
         phi0 = 0.5 * jnp.dot(f, f)
-        eps = jnp.finfo(dtype).eps
         c1 = jnp.asarray(1e-4, dtype)
-        allowance = 4 * eps * phi0
+        allowance = 4 * jnp.finfo(dtype).eps * phi0
 
         def trial(a):
             fa, _ = residual(flat_y + a * d)
             phi = 0.5 * jnp.dot(fa, fa)
-            return fa, jnp.where(jnp.isfinite(phi), phi, jnp.inf)
+            return fa, jnp.where(jnp.isfinite(phi), phi, jnp.asarray(jnp.inf, dtype))
 
-        def accept(a, phi):
+        def acceptable(a, phi):
             return phi <= phi0 + c1 * a * jnp.minimum(slope, 0) + allowance
 
         def cond(carry):
-            i, a, _, phi, _, _ = carry
-            return (i < self.max_backtracks) & ~accept(a, phi)
+            i, a, _, _, _, phi = carry
+            return (i < self.max_backtracks) & ~acceptable(a, phi)
 
         def body(carry):
             i, a, best_a, best_phi, _, _ = carry
             a = 0.5 * a
             fa, phi = trial(a)
             better = phi < best_phi
-            return (
-                i + 1,
-                a,
-                jnp.where(better, a, best_a),
-                jnp.where(better, phi, best_phi),
-                fa,
-                phi,
-            )
+            best_a = jnp.where(better, a, best_a)
+            best_phi = jnp.where(better, phi, best_phi)
+            return i + 1, a, best_a, best_phi, fa, phi
 
         one = jnp.ones((), dtype)
         f1, phi1 = trial(one)
-        init = (jnp.array(0, jnp.int32), one, one, phi1, f1, phi1)
-        _, a, best_a, best_phi, fa, phi = jax.lax.while_loop(cond, body, init)
-        ok = accept(a, phi)
-        # No acceptable point: fall back to the best trial seen (a stall).
+        carry = (jnp.array(0, jnp.int32), one, one, phi1, f1, phi1)
+        _, a, best_a, best_phi, fa, phi = jax.lax.while_loop(cond, body, carry)
+        ok = acceptable(a, phi)
+        # No acceptable point: take the best trial seen, and count a stall.
         a_used = jnp.where(ok, a, best_a)
         f_used = jax.lax.cond(ok, lambda: fa, lambda: trial(best_a)[0])
-        stalled = ~ok
-        stalls = jnp.where(stalled, state.stalls + 1, 0)
-        new_y = flat_y + a_used * d
+        stalls = jnp.where(ok, 0, state.stalls + 1)
+        new_flat_y = flat_y + a_used * d
+        new_y = unravel(new_flat_y)
+
+        out = _flat_outputs(options, new_y, dtype)
+        out_change = jnp.max(jnp.abs(out - state.out) / (1 + jnp.abs(out)), initial=0.0)
         fmax = jnp.max(jnp.abs(f_used))
         progress = fmax < 0.5 * state.fbest
         idle = jnp.where(progress, 0, state.idle + 1)
         finite = jnp.all(jnp.isfinite(d)) & jnp.isfinite(best_phi)
-        gave_up = (stalls > self.max_stalls) | (idle >= self.patience)
-        result = optx.RESULTS.where(
-            finite,
-            optx.RESULTS.where(gave_up, optx.RESULTS.nonlinear_divergence, state.result),
-            optx.RESULTS.nonfinite,
-        )
+        result = optx.RESULTS.where(finite, state.result, optx.RESULTS.nonfinite)
         new_state = _DampedNewtonState(
             f=f_used,
+            out=out,
+            out_change=out_change.astype(dtype),
             fbest=jnp.where(progress, fmax, state.fbest),
             idle=idle,
             result=result,
             stalls=stalls,
         )
-        return unravel(new_y), new_state, aux
+        return new_y, new_state, aux
 
     def terminate(self, fn, y, args, options, state, tags):
-        del fn, args, tags
+        del fn, y, args, tags
         dtype = state.f.dtype
         tol = self._tols(dtype)
         scale = jnp.asarray(options.get("scale", 1.0), dtype)
         fmax = jnp.max(jnp.abs(state.f))
-        at_floor = (state.idle >= self.patience_floor) & (fmax <= tol["floor"] * scale)
+        stuck = state.idle >= self.patience_floor
+        if options.get("outputs") is None:
+            at_floor = (stuck | (state.stalls > 0)) & (fmax <= tol["floor_no_outputs"] * scale)
+        else:
+            settled = (state.idle >= 3) & (state.out_change <= tol["otol"])
+            creeping = stuck & (state.out_change <= tol["otol_slow"])
+            no_descent = state.stalls > 0  # the line search found no decrease at all
+            small = fmax <= tol["floor"] * scale
+            at_floor = ((settled | creeping | no_descent) & small) | (
+                stuck & (fmax <= tol["floor_moving"] * scale)
+            )
         converged = (fmax <= tol["ftol"] * scale) | at_floor
-        failed = state.result != optx.RESULTS.successful
-        return converged | failed, state.result
+        gave_up = ~converged & ((state.stalls > self.max_stalls) | (state.idle >= self.patience))
+        result = optx.RESULTS.where(gave_up, optx.RESULTS.nonlinear_divergence, state.result)
+        failed = result != optx.RESULTS.successful
+        return converged | failed, result
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}
+
+
+_COMMON_ARGS = """
+    - `ftol`, `floor`: residual tolerances (`None`: from `default_tolerances`).
+    - `max_backtracks`: halvings of the step in the line search.
+    - `max_stalls`: consecutive failed line searches before giving up.
+    - `patience_floor`: iterations without the residual halving that mark its floor.
+    - `patience`: iterations without the residual halving before giving up.
+    - `rtol`, `atol`, `norm`: unused; present because diffrax reads them off the root finder of
+      any implicit solver.
+"""
+
+
+class LevenbergMarquardt(AbstractDampedNewton):
+    """Levenberg–Marquardt, `d = −(JᵀJ + μI)⁻¹ JᵀF` with `μ = λ‖F‖₂`, and Armijo backtracking.
+
+    The damping vanishes with the residual, so convergence stays fast when the roots form a
+    manifold, and the step is always a descent direction for `½‖F‖²`. The step is computed by
+    QR of `[J; √μ I]` (never the normal equations), which stays defined for a singular `J`.
+
+    **Arguments:**
+
+    - `lam`: scale λ of the damping `μ = λ‖F‖`. Default `1e-3`.
+    """
+
+    lam: float = 1e-3
+    ftol: float | None = None
+    floor: float | None = None
+    max_backtracks: int = eqx.field(static=True, default=30)
+    max_stalls: int = eqx.field(static=True, default=3)
+    patience_floor: int = eqx.field(static=True, default=10)
+    patience: int = eqx.field(static=True, default=50)
+    rtol: float | None = None
+    atol: float | None = None
+    norm: Callable = optx.max_norm
+
+    def direction(self, jac, f):
+        n = f.shape[0]
+        eps = jnp.finfo(f.dtype).eps
+        mu = jnp.asarray(self.lam, f.dtype) * jnp.sqrt(jnp.dot(f, f))
+        mu = jnp.maximum(mu, (eps * jnp.max(jnp.abs(jac))) ** 2)
+        augmented = jnp.concatenate([jac, jnp.sqrt(mu) * jnp.eye(n, dtype=f.dtype)], axis=0)
+        rhs = jnp.concatenate([-f, jnp.zeros_like(f)])
+        qmat, rmat = jnp.linalg.qr(augmented)
+        return jax.scipy.linalg.solve_triangular(rmat, qmat.T @ rhs)
 
 
 class RegularisedNewton(AbstractDampedNewton):
     """Newton's method with a diagonal shift, `d = −(J + λI)⁻¹ F`, and Armijo backtracking.
 
     This is the reference's `Newton()` with `regularization_factor = λ`: the shift does not
-    change the roots, it keeps the linear solve defined where `J` is singular (at the price of
-    linear convergence along near-null directions).
+    change the roots, it keeps the linear solve defined where `J` is singular, at the price of
+    slow convergence along near-null directions.
 
     **Arguments:**
 
-    - `lam`: the shift λ.
-    - `ftol`, `floor`: residual tolerances (`None`: from `default_tolerances`).
-    - `max_backtracks`: halvings of the step in the line search.
-    - `max_stalls`: consecutive failed line searches before giving up.
-    - `patience_floor`: iterations without progress that mark the round-off floor.
-    - `patience`: iterations without progress (residual halving) before giving up.
+    - `lam`: the shift λ. Default `2.4e-7` (`16·sqrt(eps)` of float64, the reference
+      benchmark's value).
     """
 
-    lam: float = 1e-8
+    lam: float = 2.4e-7
     ftol: float | None = None
     floor: float | None = None
     max_backtracks: int = eqx.field(static=True, default=30)
     max_stalls: int = eqx.field(static=True, default=3)
-    patience_floor: int = eqx.field(static=True, default=3)
-    patience: int = eqx.field(static=True, default=25)
-    rtol: float | None = None  # unused; diffrax reads it off any implicit solver's root finder
-    atol: float | None = None  # unused; as rtol
+    patience_floor: int = eqx.field(static=True, default=10)
+    patience: int = eqx.field(static=True, default=50)
+    rtol: float | None = None
+    atol: float | None = None
     norm: Callable = optx.max_norm
 
     def direction(self, jac, f):
@@ -217,34 +294,5 @@ class RegularisedNewton(AbstractDampedNewton):
         return -jnp.linalg.solve(jac + lam * jnp.eye(n, dtype=f.dtype), f)
 
 
-class LevenbergMarquardt(AbstractDampedNewton):
-    """Levenberg–Marquardt, `d = −(JᵀJ + μI)⁻¹ JᵀF` with `μ = λ‖F‖₂`, and Armijo backtracking.
-
-    The damping vanishes as the residual does, so convergence is quadratic also when the roots
-    form a manifold (singular `J` at the solution), and the step is always a descent direction.
-
-    **Arguments:** as `RegularisedNewton`; `lam` scales the damping `μ = λ‖F‖`.
-    """
-
-    lam: float = 1e-3
-    ftol: float | None = None
-    floor: float | None = None
-    max_backtracks: int = eqx.field(static=True, default=30)
-    max_stalls: int = eqx.field(static=True, default=3)
-    patience_floor: int = eqx.field(static=True, default=3)
-    patience: int = eqx.field(static=True, default=25)
-    rtol: float | None = None  # unused; diffrax reads it off any implicit solver's root finder
-    atol: float | None = None  # unused; as rtol
-    norm: Callable = optx.max_norm
-
-    def direction(self, jac, f):
-        n = f.shape[0]
-        eps = jnp.finfo(f.dtype).eps
-        mu = jnp.asarray(self.lam, f.dtype) * jnp.sqrt(jnp.dot(f, f))
-        mu = jnp.maximum(mu, (eps * jnp.max(jnp.abs(jac))) ** 2)
-        # Least squares on [J; √μ I] d ≈ [−F; 0] by QR: no normal equations, so nothing is
-        # squared and a tiny μ next to a singular J stays well defined.
-        augmented = jnp.concatenate([jac, jnp.sqrt(mu) * jnp.eye(n, dtype=f.dtype)], axis=0)
-        rhs = jnp.concatenate([-f, jnp.zeros_like(f)])
-        qmat, rmat = jnp.linalg.qr(augmented)
-        return jax.scipy.linalg.solve_triangular(rmat, qmat.T @ rhs)
+LevenbergMarquardt.__doc__ += _COMMON_ARGS
+RegularisedNewton.__doc__ += _COMMON_ARGS

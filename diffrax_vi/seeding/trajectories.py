@@ -120,17 +120,24 @@ class NoExtrapolation(AbstractInitialTrajectory):
 class PreviousStep(AbstractInitialTrajectory):
     """Warm start: continue the previous step's converged network past its end.
 
-    After each step the solver stores the converged parameters advanced by one step
-    (`σ(wτ + b) ↦ σ(w(1 + ρτ) + b)`, i.e. `b ← b + w`, `w ← ρw` with `ρ` the ratio of step
-    sizes), and the next Newton solve starts from them directly — no trajectory and no fit.
-    The first step (and a step after `made_jump`) uses `first`.
+    After each step the solver keeps the converged parameters; the next step starts from
+    them advanced by one step (`σ(wτ + b) ↦ σ(w(1 + ρτ) + b)`, i.e. `b ← b + w`, `w ← ρw`, with
+    `ρ` the ratio of step sizes) and `p_{n+1}` seeded by the momentum of the continued curve at
+    its end — no trajectory and no fit. A cheap acceptance test guards it: if the residual of
+    the variational equations at the warm start exceeds `tolerance·scale` (`scale = 1 +
+    max(|q_n|, |p_n|)`), the step is seeded by `first` instead, as are the first step and a
+    step after `made_jump`.
 
     **Arguments:**
 
-    - `first`: the strategy for the first step. Default `IntegratorExtrapolation()`.
+    - `first`: the strategy for the first step and the fallback. Default
+      `IntegratorExtrapolation()`.
+    - `tolerance`: acceptance bound on `max|F|` of the warm start, relative to `scale`;
+      `None` means `sqrt(eps)` of the working dtype.
     """
 
     first: AbstractInitialTrajectory = IntegratorExtrapolation()
+    tolerance: float | None = eqx.field(static=True, default=None)
 
     @property
     def substeps(self) -> int:
@@ -139,6 +146,11 @@ class PreviousStep(AbstractInitialTrajectory):
     def __check_init__(self):
         if isinstance(self.first, PreviousStep):
             raise ValueError("PreviousStep(first=...) needs a strategy that works without history")
+
+    def accept_tolerance(self, dtype) -> float:
+        if self.tolerance is not None:
+            return self.tolerance
+        return float(jnp.finfo(dtype).eps) ** 0.5
 
     def labels(self, term, t, h, q0, p0, args):
         return self.first.labels(term, t, h, q0, p0, args)
