@@ -94,6 +94,7 @@ def measure(problem, solver, repeats, **solve_kwargs) -> dict:
             it_median=int(np.searchsorted(np.cumsum(hist), steps / 2)) if steps else None,
             it_mean=int(state.iterations) / steps if steps else None,
             it_max=int(state.max_iterations),
+            warm=int(state.warm_starts),
         )
     else:
         steps = int(sol.stats["num_accepted_steps"])
@@ -169,9 +170,9 @@ def main():
 
     print(
         "| solver | seed / control | result | t end | steps | compile s | total ms | ms/step "
-        "| iters median | iters mean | iters max | rel. error q(t end) |"
+        "| iters median | iters mean | iters max | warm starts | rel. error q(t end) |"
     )
-    print("|" + "---|" * 12)
+    print("|" + "---|" * 13)
     for r in rows:
         print(
             f"| {r['solver']} | {r['seed']} | {r['result']} | {fmt(r.get('t_end'), 'g')} "
@@ -179,7 +180,7 @@ def main():
             f"| {fmt(r.get('compile_s'), '.2f')} | {fmt(r.get('total_s'), '.1f', 1e3)} "
             f"| {fmt(r.get('per_step_s'), '.4f', 1e3)} | {fmt(r.get('it_median'), 'd')} "
             f"| {fmt(r.get('it_mean'), '.2f')} | {fmt(r.get('it_max'), 'd')} "
-            f"| {fmt(r.get('error'), '.2e')} |"
+            f"| {fmt(r.get('warm'), 'd')} | {fmt(r.get('error'), '.2e')} |"
         )
 
     def ratio(a, b, key):

@@ -35,6 +35,8 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
+from .linalg import damped_least_squares, solve
+
 __all__ = ["AbstractDampedNewton", "RegularisedNewton", "LevenbergMarquardt", "default_tolerances"]
 
 
@@ -44,7 +46,7 @@ def default_tolerances(dtype) -> dict[str, float]:
     Residuals are compared with `tol·scale`, where `scale` comes from the caller through
     `options["scale"]` (default 1; `NetworkVI` passes `1 + max(|q_n|, |p_n|)`).
 
-    - `ftol = 64·eps`: converged when `max|F| ≤ ftol·scale`;
+    - `ftol = min(64·eps, eps^(3/4))`: converged when `max|F| ≤ ftol·scale`;
     - `floor = sqrt(eps)`: also converged when the residual is below `floor·scale` and has
       stopped falling (it did not halve for 3 iterations) while the outputs changed by at most
       `otol·(1 + |output|)` in the last iteration (`otol = 64·eps`), or by at most
@@ -59,7 +61,7 @@ def default_tolerances(dtype) -> dict[str, float]:
     """
     eps = float(jnp.finfo(dtype).eps)
     return dict(
-        ftol=64 * eps, floor=eps**0.5, floor_moving=eps**0.625, otol=64 * eps,
+        ftol=min(64 * eps, eps**0.75), floor=eps**0.5, floor_moving=eps**0.625, otol=64 * eps,
         otol_slow=eps**0.75, floor_no_outputs=eps**0.75,
     )
 
@@ -254,14 +256,10 @@ class LevenbergMarquardt(AbstractDampedNewton):
     norm: Callable = optx.max_norm
 
     def direction(self, jac, f):
-        n = f.shape[0]
         eps = jnp.finfo(f.dtype).eps
         mu = jnp.asarray(self.lam, f.dtype) * jnp.sqrt(jnp.dot(f, f))
         mu = jnp.maximum(mu, (eps * jnp.max(jnp.abs(jac))) ** 2)
-        augmented = jnp.concatenate([jac, jnp.sqrt(mu) * jnp.eye(n, dtype=f.dtype)], axis=0)
-        rhs = jnp.concatenate([-f, jnp.zeros_like(f)])
-        qmat, rmat = jnp.linalg.qr(augmented)
-        return jax.scipy.linalg.solve_triangular(rmat, qmat.T @ rhs)
+        return damped_least_squares(jac, -f, jnp.sqrt(mu))
 
 
 class RegularisedNewton(AbstractDampedNewton):
@@ -291,7 +289,7 @@ class RegularisedNewton(AbstractDampedNewton):
     def direction(self, jac, f):
         n = f.shape[0]
         lam = jnp.asarray(self.lam, f.dtype)
-        return -jnp.linalg.solve(jac + lam * jnp.eye(n, dtype=f.dtype), f)
+        return -solve(jac + lam * jnp.eye(n, dtype=f.dtype), f)
 
 
 LevenbergMarquardt.__doc__ += _COMMON_ARGS

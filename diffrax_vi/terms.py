@@ -20,6 +20,8 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import Array, ArrayLike, PyTree
 
+from .linalg import solve
+
 __all__ = ["AbstractMechanicalTerm", "LagrangianTerm", "IODETerm", "unwrap_term"]
 
 
@@ -71,16 +73,6 @@ def _split_state(y) -> tuple[Array, Array]:
             f"{type(y).__name__}"
         )
     return y[0], y[1]
-
-
-def _linear_solve(matrix: Array, rhs: Array) -> Array:
-    """`matrix⁻¹ rhs` in the dtype of `rhs`; LAPACK has no half precision, so below 32 bits the
-    factorisation runs in float32 and only the result is rounded back."""
-    dtype = jnp.result_type(rhs)
-    if jnp.finfo(dtype).bits < 32:
-        work = jnp.float32
-        return jnp.linalg.solve(matrix.astype(work), rhs.astype(work)).astype(dtype)
-    return jnp.linalg.solve(matrix, rhs)
 
 
 def _check_scalar(value, what: str, dtype) -> Array:
@@ -151,7 +143,7 @@ class LagrangianTerm(AbstractMechanicalTerm):
 
         def newton(_, v):
             mass = jax.jacfwd(momentum)(v)
-            return v - _linear_solve(mass, momentum(v) - p)
+            return v - solve(mass, momentum(v) - p)
 
         return jax.lax.fori_loop(0, self.legendre_iterations, newton, jnp.zeros_like(q))
 

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from ..linalg import solve
 from ..terms import AbstractMechanicalTerm
 
 __all__ = [
@@ -57,7 +58,7 @@ def implicit_midpoint(
     final momentum.
     """
     dtype = q0.dtype
-    delta = (h / substeps).astype(dtype)
+    delta = (jnp.asarray(h, dtype) / substeps).astype(dtype)
     half = (delta / 2).astype(dtype)
 
     def substep(carry, k):
@@ -70,7 +71,7 @@ def implicit_midpoint(
 
         def newton(_, vel):
             r, jac = equation(vel), jax.jacfwd(equation)(vel)
-            return vel - jnp.linalg.solve(jac, r)
+            return vel - solve(jac, r)
 
         v = jax.lax.fori_loop(0, iterations, newton, v)
         _, fm = term.momentum_and_force(tm, q + half * v, v, args)

@@ -1,0 +1,641 @@
+"""Unit tests of the building blocks: quadrature, activations, root finders, Lagrange weights,
+the shallow-network ansatz, the free-endpoint equations and the midpoint seed trajectory."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import diffrax_vi as dvi
+from diffrax_vi import problems
+from diffrax_vi.activations import ReLUk, activation_name, check_activation
+from diffrax_vi.formulation import FreeEndpoints, StepContext, action_gradient, stage_values
+from diffrax_vi.interpolation import lagrange_weights
+from diffrax_vi.nonlinear import LevenbergMarquardt, RegularisedNewton, default_tolerances
+from diffrax_vi.quadrature import GaussLegendre, Simpson
+from diffrax_vi.seeding.trajectories import implicit_midpoint
+from diffrax_vi.terms import IODETerm, LagrangianTerm
+
+F64 = jnp.float64
+
+
+def _integrate(rule, f):
+    c, b = rule.nodes_weights(F64)
+    return float(jnp.sum(b * f(c)))
+
+
+# -- 1. quadrature ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 6])
+def test_gauss_legendre_exact_up_to_degree_2n_minus_1(n):
+    rule = GaussLegendre(n)
+    for k in range(2 * n):
+        assert _integrate(rule, lambda x: x**k) == pytest.approx(1 / (k + 1), abs=1e-14), k
+    # Degree 2n is not integrated exactly: the error is (n!)^4 / ((2n+1) ((2n)!)^2) > 0.
+    err = 1 / (2 * n + 1) - _integrate(rule, lambda x: x ** (2 * n))
+    expected = math.factorial(n) ** 4 / ((2 * n + 1) * math.factorial(2 * n) ** 2)
+    assert err == pytest.approx(expected, rel=1e-6)
+    assert rule.order == 2 * n
+    assert rule.num_nodes == n
+
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+def test_gauss_legendre_nodes_in_unit_interval_weights_sum_to_one(n):
+    c, b = GaussLegendre(n).nodes_weights(F64)
+    assert c.shape == b.shape == (n,)
+    assert float(jnp.sum(b)) == pytest.approx(1.0, abs=1e-15)
+    assert bool(jnp.all((c > 0) & (c < 1))) and bool(jnp.all(b > 0))
+    assert bool(jnp.all(jnp.diff(c) > 0))
+
+
+@pytest.mark.parametrize("rule", [GaussLegendre(4), Simpson(6)])
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
+def test_quadrature_dtype_honoured(rule, dtype):
+    c, b = rule.nodes_weights(dtype)
+    assert c.dtype == jnp.dtype(dtype) and b.dtype == jnp.dtype(dtype)
+    tol = {jnp.float16: 2e-3, jnp.float32: 1e-6, jnp.float64: 1e-15}[dtype]
+    assert float(jnp.sum(b.astype(F64))) == pytest.approx(1.0, abs=tol)
+
+
+@pytest.mark.parametrize("n", [2, 4, 10])
+def test_simpson_exact_for_cubics_not_quartics(n):
+    rule = Simpson(n)
+    c, b = rule.nodes_weights(F64)
+    np.testing.assert_allclose(np.asarray(c), np.arange(n + 1) / n, atol=0)
+    assert float(jnp.sum(b)) == pytest.approx(1.0, abs=1e-15)
+    cubic = lambda x: 2.0 - 3.0 * x + 5.0 * x**2 - 7.0 * x**3
+    assert _integrate(rule, cubic) == pytest.approx(2.0 - 1.5 + 5 / 3 - 7 / 4, abs=1e-14)
+    # Composite Simpson error for x^4: (1/180) h^4 * 4! with h = 1/n.
+    err = _integrate(rule, lambda x: x**4) - 0.2
+    assert err == pytest.approx(24 / 180 / n**4, rel=1e-8)
+
+
+@pytest.mark.parametrize("n", [0, 1, 3, 7, -2, 2.0, True])
+def test_simpson_refuses_odd_or_nonpositive(n):
+    with pytest.raises(ValueError, match="even, positive"):
+        Simpson(n)
+
+
+@pytest.mark.parametrize("n", [0, -1, 2.0, True])
+def test_gauss_legendre_refuses_bad_counts(n):
+    with pytest.raises(ValueError, match="positive integer"):
+        GaussLegendre(n)
+
+
+# -- 2. activations --------------------------------------------------------------------------
+
+ACTIVATIONS = [dvi.tanh, dvi.sigmoid, dvi.sin, dvi.gelu, dvi.elu, dvi.relu_k(1), dvi.relu_k(3)]
+
+
+@pytest.mark.parametrize("activation", ACTIVATIONS, ids=activation_name)
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
+def test_activation_keeps_dtype(activation, dtype):
+    x = jnp.linspace(-2, 2, 9, dtype=dtype)
+    y = activation(x)
+    assert y.dtype == jnp.dtype(dtype)
+    assert y.shape == x.shape
+    assert bool(jnp.all(jnp.isfinite(y)))
+    check_activation(activation, dtype)  # does not raise
+    # Also under jit (static activation, traced input).
+    assert jax.jit(activation)(x).dtype == jnp.dtype(dtype)
+
+
+def test_activation_values():
+    x = jnp.linspace(-2, 2, 9, dtype=F64)
+    np.testing.assert_allclose(dvi.relu_k(3)(x), np.maximum(np.asarray(x), 0) ** 3)
+    np.testing.assert_allclose(dvi.sigmoid(x), 1 / (1 + np.exp(-np.asarray(x))), rtol=1e-14)
+    np.testing.assert_allclose(dvi.elu(x), np.where(x > 0, x, np.expm1(np.asarray(x))))
+
+
+@pytest.mark.parametrize("k", [0, -1, 2.5, True, "3"])
+def test_relu_k_refuses_bad_power(k):
+    with pytest.raises(ValueError, match="relu_k"):
+        dvi.relu_k(k)
+
+
+def test_relu_k_hashable_and_equal_by_k():
+    a, b, c = dvi.relu_k(3), dvi.relu_k(3), dvi.relu_k(4)
+    assert isinstance(a, ReLUk)
+    assert a == b and hash(a) == hash(b)
+    assert a != c
+    assert len({a, b, c}) == 2
+    assert repr(a) == "relu_k(3)"
+    # Usable as a static field: equal bases compare equal and hash equally.
+    assert dvi.ShallowNetBasis(a, 4) == dvi.ShallowNetBasis(b, 4)
+    assert hash(dvi.ShallowNetBasis(a, 4)) == hash(dvi.ShallowNetBasis(b, 4))
+
+
+def promoting_activation(x):
+    return x * jnp.asarray(2.0, dtype=jnp.float64)
+
+
+def stacking_activation(x):
+    return jnp.stack([x, x])
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32])
+def test_check_activation_refuses_promotion(dtype):
+    with pytest.raises(ValueError, match="promoting_activation.*promotes"):
+        check_activation(promoting_activation, dtype)
+    with pytest.raises(ValueError, match="promoting_activation"):
+        dvi.ShallowNetBasis(promoting_activation, 3).check(dtype)
+
+
+def test_check_activation_refuses_non_elementwise():
+    with pytest.raises(ValueError, match="stacking_activation.*elementwise"):
+        check_activation(stacking_activation, jnp.float64)
+
+
+def test_check_activation_refuses_failing_and_nonfinite():
+    def broken(x):
+        raise RuntimeError("boom")
+
+    def log_negative(x):
+        return jnp.log(x - 1)
+
+    with pytest.raises(ValueError, match="broken.*boom"):
+        check_activation(broken, jnp.float32)
+    with pytest.raises(ValueError, match="log_negative.*not finite"):
+        check_activation(log_negative, jnp.float64)
+
+
+def test_check_activation_works_while_tracing():
+    @jax.jit
+    def f(x):
+        check_activation(promoting_activation, x.dtype)
+        return x
+
+    with pytest.raises(ValueError, match="promotes"):
+        f(jnp.ones(2, jnp.float32))
+
+
+# -- 3. root finders -------------------------------------------------------------------------
+
+_A = np.eye(10) * 3.0 + 0.1 * np.arange(100.0).reshape(10, 10) / 100
+_XSTAR = np.linspace(-1.0, 1.0, 10)
+_B = _A @ _XSTAR + 0.5 * np.sin(_XSTAR) + _XSTAR**3
+
+
+def well_posed(y, args):
+    """A 10-dimensional system with the unique root `_XSTAR`, in the dtype of `y`."""
+    return jnp.asarray(_A, y.dtype) @ y + 0.5 * jnp.sin(y) + y**3 - jnp.asarray(_B, y.dtype)
+
+
+def degenerate(y, args):
+    """Two copies of one equation in two unknowns: roots form the curve `a w³ = 2`; the
+    Jacobian is singular everywhere."""
+    a, w = y
+    r = a * w**3 - 2.0
+    return jnp.stack([r, r])
+
+
+ROOT_FINDERS = [LevenbergMarquardt(), RegularisedNewton()]
+ids = lambda s: type(s).__name__
+
+
+def _find(fn, solver, y0, max_steps=100, **kwargs):
+    return optx.root_find(fn, solver, y0, None, throw=False, max_steps=max_steps, **kwargs)
+
+
+@pytest.mark.parametrize("solver", ROOT_FINDERS, ids=ids)
+def test_root_finder_well_posed_float64(solver):
+    sol = _find(well_posed, solver, jnp.zeros(10, F64))
+    assert sol.result == optx.RESULTS.successful
+    assert sol.value.dtype == F64
+    assert float(jnp.max(jnp.abs(sol.value - _XSTAR))) <= 1e-13
+    assert float(jnp.max(jnp.abs(well_posed(sol.value, None)))) <= 64 * np.finfo(np.float64).eps
+    assert int(sol.stats["num_steps"]) <= 8
+
+
+@pytest.mark.parametrize("solver", ROOT_FINDERS, ids=ids)
+def test_root_finder_converges_quadratically(solver):
+    fn = lambda y, args: (well_posed(y, args), None)  # the (out, aux) form optimistix passes
+    y, opts, tags = jnp.zeros(10, F64), {}, frozenset()
+    state = solver.init(fn, y, None, opts, None, None, tags)
+    step = jax.jit(lambda y, state: solver.step(fn, y, None, opts, state, tags)[:2])
+    errors = []
+    for _ in range(6):
+        y, state = step(y, state)
+        errors.append(float(jnp.max(jnp.abs(y - _XSTAR))))
+    # Once in the basin, e_{k+1} <= C e_k^2 (measured C < 0.5) until rounding takes over.
+    fast = [(e0, e1) for e0, e1 in zip(errors, errors[1:], strict=False) if 1e-12 < e0 < 0.05]
+    assert len(fast) >= 2, errors
+    for e0, e1 in fast:
+        assert e1 <= 5.0 * e0**2, errors
+    assert errors[-1] <= 1e-14
+
+
+def test_levenberg_marquardt_non_isolated_roots():
+    y0 = jnp.array([1.0, 0.5], F64)
+    sol = _find(degenerate, LevenbergMarquardt(), y0)
+    assert sol.result == optx.RESULTS.successful
+    assert bool(jnp.all(jnp.isfinite(sol.value)))
+    assert float(jnp.max(jnp.abs(degenerate(sol.value, None)))) <= 1e-13
+    assert int(sol.stats["num_steps"]) <= 10
+    # The plain LU Newton step is undefined on this system.
+    newton = _find(degenerate, optx.Newton(rtol=1e-10, atol=1e-10), y0)
+    assert newton.result != optx.RESULTS.successful
+
+
+@pytest.mark.parametrize("solver", ROOT_FINDERS, ids=ids)
+def test_root_finder_no_root_is_not_successful(solver):
+    no_root = lambda y, args: y**2 + 1.0
+    sol = _find(no_root, solver, jnp.array([0.3, -0.7], F64), max_steps=200)
+    assert sol.result != optx.RESULTS.successful
+    assert int(sol.stats["num_steps"]) < 200  # gives up by itself (patience), not max_steps
+    # With a small step budget: max_steps_reached, never a silent success.
+    sol = _find(no_root, solver, jnp.array([0.3, -0.7], F64), max_steps=5)
+    assert sol.result != optx.RESULTS.successful
+
+
+@pytest.mark.parametrize("solver", ROOT_FINDERS, ids=ids)
+def test_root_finder_nan_residual_is_not_successful(solver):
+    nan_everywhere = lambda y, args: jnp.sqrt(y) - 3.0 + jnp.log(y - 100.0)
+    sol = _find(nan_everywhere, solver, jnp.array([1.0, 2.0], F64))
+    assert sol.result != optx.RESULTS.successful
+    assert int(sol.stats["num_steps"]) <= 2  # detected at once, not after running out of patience
+
+    # Finite at the start, NaN beyond a wall the full Newton step crosses.
+    def wall(y, args):
+        return jnp.where(y < 2.0, y - 5.0, jnp.nan)
+
+    sol = _find(wall, solver, jnp.array([0.0], F64))
+    assert sol.result != optx.RESULTS.successful
+
+
+@pytest.mark.parametrize("solver", ROOT_FINDERS, ids=ids)
+def test_root_finder_float32(solver):
+    sol = _find(well_posed, solver, jnp.zeros(10, jnp.float32))
+    assert sol.result == optx.RESULTS.successful
+    assert sol.value.dtype == jnp.float32
+    assert float(jnp.max(jnp.abs(sol.value - _XSTAR))) <= 1e-5
+
+
+def floor_system(y, args):
+    """Inconsistent by 1e-9: the least-squares residual stops at 5e-10, far above `ftol` but
+    below `floor`; `y[1]` does not enter."""
+    return jnp.stack([y[0] - 1.0, y[0] - 1.0 + 1e-9])
+
+
+@pytest.mark.parametrize("solver", ROOT_FINDERS, ids=ids)
+def test_root_finder_options_honoured(solver):
+    y0 = jnp.zeros(2, F64)
+    # Without outputs of interest a residual floor at 5e-10 > eps^(3/4) is a failure ...
+    plain = _find(floor_system, solver, y0, max_steps=200)
+    assert plain.result != optx.RESULTS.successful
+    # ... with outputs that settled, it is converged.
+    calls = []
+
+    def outputs(y):
+        calls.append(None)
+        return {"x": y[0]}
+
+    sol = _find(floor_system, solver, y0, max_steps=200, options=dict(outputs=outputs))
+    assert calls, "the outputs callable was never called"
+    assert sol.result == optx.RESULTS.successful
+    assert float(sol.value[0]) == pytest.approx(1.0 - 5e-10, abs=1e-9)
+    assert int(sol.stats["num_steps"]) < int(plain.stats["num_steps"])
+    # A large scale loosens the tolerance to ftol·scale.
+    scaled = _find(floor_system, solver, y0, max_steps=200, options=dict(scale=1e6))
+    assert scaled.result == optx.RESULTS.successful
+
+    # The scale also stops a well-posed solve earlier.
+    exact = _find(well_posed, solver, jnp.zeros(10, F64))
+    loose = _find(well_posed, solver, jnp.zeros(10, F64), options=dict(scale=1e8))
+    assert loose.result == optx.RESULTS.successful
+    assert int(loose.stats["num_steps"]) < int(exact.stats["num_steps"])
+    ftol = default_tolerances(F64)["ftol"]
+    assert float(jnp.max(jnp.abs(well_posed(loose.value, None)))) <= ftol * 1e8
+
+
+def test_root_finder_explicit_ftol():
+    loose = _find(well_posed, LevenbergMarquardt(ftol=1e-3), jnp.zeros(10, F64))
+    assert loose.result == optx.RESULTS.successful
+    residual = float(jnp.max(jnp.abs(well_posed(loose.value, None))))
+    assert 1e-12 < residual <= 1e-3
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
+def test_default_tolerances_scale_with_eps(dtype):
+    eps = float(jnp.finfo(dtype).eps)
+    tol = default_tolerances(dtype)
+    assert tol["ftol"] == pytest.approx(min(64 * eps, eps**0.75))
+    assert tol["ftol"] <= tol["floor"]
+    assert tol["otol"] == pytest.approx(64 * eps)
+    assert tol["floor"] == pytest.approx(eps**0.5)
+    assert tol["floor_moving"] == pytest.approx(eps**0.625)
+    assert tol["otol_slow"] == pytest.approx(eps**0.75)
+    assert tol["floor_no_outputs"] == pytest.approx(eps**0.75)
+    assert tol["floor_no_outputs"] < tol["floor_moving"] < tol["floor"] < 1
+
+
+def test_default_tolerances_float64_values():
+    tol = default_tolerances(jnp.float64)
+    assert tol["ftol"] == pytest.approx(64 * 2.0**-52)
+    assert tol["floor"] == pytest.approx(2.0**-26)
+    assert tol["ftol"] < tol["floor_no_outputs"] < tol["floor_moving"] < tol["floor"]
+    assert default_tolerances(jnp.float32)["ftol"] <= default_tolerances(jnp.float32)["floor"]
+    # Every tolerance grows with eps: float32 ones are looser than float64 ones.
+    tol32 = default_tolerances(jnp.float32)
+    assert tol32["ftol"] == pytest.approx(2.0 ** (-23 * 0.75))  # eps^(3/4) < 64·eps in float32
+    assert all(tol32[name] > tol[name] for name in tol)
+
+
+# -- 4. Lagrange weights ---------------------------------------------------------------------
+
+POINTS = (0.0, 0.5 - math.sqrt(15) / 10, 0.5, 0.5 + math.sqrt(15) / 10, 1.0)
+
+
+def test_lagrange_weights_kronecker_at_points():
+    for i, x in enumerate(POINTS):
+        w = lagrange_weights(POINTS, jnp.asarray(x, F64))
+        expected = np.zeros(len(POINTS))
+        expected[i] = 1.0
+        np.testing.assert_allclose(np.asarray(w), expected, rtol=0, atol=1e-14)
+        off = np.delete(np.asarray(w), i)
+        assert np.all(off == 0.0), "off-diagonal weights must vanish exactly"
+
+
+@pytest.mark.parametrize("tau", [-0.3, 0.1, 0.37, 0.9, 1.4])
+def test_lagrange_weights_partition_of_unity_and_polynomials(tau):
+    w = lagrange_weights(POINTS, jnp.asarray(tau, F64))
+    assert w.shape == (len(POINTS),)
+    assert float(jnp.sum(w)) == pytest.approx(1.0, abs=1e-13)
+    x = np.asarray(POINTS)
+    rng = np.random.default_rng(0)
+    n = len(POINTS)
+    for degree in range(n):
+        coeffs = rng.normal(size=degree + 1)
+        exact = np.polyval(coeffs, tau)
+        assert float(w @ jnp.asarray(np.polyval(coeffs, x))) == pytest.approx(exact, abs=1e-12)
+    # The nodal polynomial of degree n vanishes at every point but not at tau.
+    nodal = lambda s: np.prod([s - xi for xi in x])
+    assert float(w @ jnp.asarray([nodal(xi) for xi in x])) == 0.0
+    assert abs(nodal(tau)) > 1e-4
+
+
+def test_lagrange_weights_dtype_and_jit():
+    w = jax.jit(lambda t: lagrange_weights(POINTS, t))(jnp.asarray(0.3, jnp.float32))
+    assert w.dtype == jnp.float32
+    assert float(jnp.sum(w)) == pytest.approx(1.0, abs=1e-5)
+
+
+# -- 5. ShallowNetBasis ----------------------------------------------------------------------
+
+
+def _theta(width, dim, seed=0, dtype=F64):
+    rng = np.random.default_rng(seed)
+    return jnp.asarray(rng.normal(size=(3 * width, dim)), dtype)
+
+
+def _by_hand(activation, theta, width, tau):
+    theta = np.asarray(theta)
+    alpha, w, beta = theta[:width], theta[width : 2 * width], theta[2 * width :]
+    out = np.zeros(theta.shape[1])
+    for d in range(theta.shape[1]):
+        for i in range(width):
+            out[d] += alpha[i, d] * float(activation(jnp.asarray(w[i, d] * tau + beta[i, d])))
+    return out
+
+
+@pytest.mark.parametrize("activation", [dvi.tanh, dvi.sin, dvi.relu_k(3)], ids=activation_name)
+def test_shallow_evaluate_matches_hand_sum(activation):
+    width, dim = 4, 3
+    basis = dvi.ShallowNetBasis(activation, width)
+    theta = _theta(width, dim)
+    assert basis.num_params() == 3 * width
+    for tau in (0.0, 0.3, 1.0, 1.7):
+        got = basis.evaluate(theta, jnp.asarray(tau, F64))
+        assert got.shape == (dim,)
+        np.testing.assert_allclose(
+            np.asarray(got), _by_hand(activation, theta, width, tau), rtol=1e-13, atol=1e-14
+        )
+
+
+def test_shallow_split_join_roundtrip():
+    basis = dvi.ShallowNetBasis(dvi.tanh, 5)
+    theta = _theta(5, 2)
+    alpha, w, beta = basis.split(theta)
+    assert alpha.shape == w.shape == beta.shape == (5, 2)
+    np.testing.assert_array_equal(basis.join(alpha, w, beta), theta)
+
+
+@pytest.mark.parametrize("activation", [dvi.tanh, dvi.gelu, dvi.relu_k(3)], ids=activation_name)
+def test_shallow_value_and_derivative_matches_finite_differences(activation):
+    basis = dvi.ShallowNetBasis(activation, 6)
+    theta = _theta(6, 2, seed=1)
+    step = 1e-5
+    for tau in (0.1, 0.5, 0.9):
+        q, dq = basis.value_and_derivative(theta, tau)
+        np.testing.assert_allclose(q, basis.evaluate(theta, jnp.asarray(tau, F64)), rtol=1e-15)
+        plus = basis.evaluate(theta, jnp.asarray(tau + step, F64))
+        minus = basis.evaluate(theta, jnp.asarray(tau - step, F64))
+        fd = (plus - minus) / (2 * step)
+        np.testing.assert_allclose(np.asarray(dq), np.asarray(fd), rtol=1e-7, atol=1e-8)
+        assert dq.dtype == F64
+
+
+@pytest.mark.parametrize("activation", [dvi.tanh, dvi.sigmoid, dvi.relu_k(3)], ids=activation_name)
+@pytest.mark.parametrize("ratio", [1.0, 0.5, 2.0, 0.37])
+def test_shallow_advance_continues_the_curve(activation, ratio):
+    basis = dvi.ShallowNetBasis(activation, 5)
+    theta = _theta(5, 2, seed=2)
+    advanced = basis.advance(theta, jnp.asarray(ratio, F64))
+    assert advanced.shape == theta.shape
+    for tau in (0.0, 0.25, 0.6, 1.0):
+        lhs = basis.evaluate(advanced, jnp.asarray(tau, F64))
+        rhs = basis.evaluate(theta, jnp.asarray(1.0 + ratio * tau, F64))
+        np.testing.assert_allclose(np.asarray(lhs), np.asarray(rhs), rtol=1e-13, atol=1e-14)
+
+
+def test_shallow_refuses_bad_arguments():
+    with pytest.raises(ValueError, match="width"):
+        dvi.ShallowNetBasis(dvi.tanh, 0)
+    with pytest.raises(TypeError, match="callable"):
+        dvi.ShallowNetBasis(3.0, 4)
+
+
+# -- 6. formulation --------------------------------------------------------------------------
+
+
+def lagrangian(t, q, v, args):
+    """Time dependent, position-dependent mass, magnetic term and a potential (D = 2)."""
+    mass = 1.0 + 0.3 * jnp.sin(q[0]) ** 2 + 0.1 * t
+    magnetic = 0.4 * q[1] * v[0] - 0.2 * q[0] * v[1]
+    return 0.5 * mass * v[0] ** 2 + 0.5 * v[1] ** 2 + magnetic - jnp.cos(q[0]) * (1 + q[1] ** 2)
+
+
+def _context(quad_nodes=5):
+    term = LagrangianTerm(lagrangian)
+    basis = dvi.ShallowNetBasis(dvi.tanh, 4)
+    nodes, weights = GaussLegendre(quad_nodes).nodes_weights(F64)
+    return StepContext(
+        term=term,
+        basis=basis,
+        t=jnp.asarray(0.7, F64),
+        h=jnp.asarray(0.3, F64),
+        q0=jnp.asarray([0.4, -0.2], F64),
+        p0=jnp.asarray([0.1, 0.5], F64),
+        args=None,
+        nodes=nodes,
+        weights=weights,
+    )
+
+
+def _discrete_action(ctx, theta):
+    def curve(tau):
+        return ctx.basis.evaluate(theta, tau)
+
+    total = jnp.zeros((), F64)
+    for c, b in zip(ctx.nodes, ctx.weights, strict=True):
+        q = curve(c)
+        dq = jax.jacfwd(curve)(c)
+        total = total + b * lagrangian(ctx.t + c * ctx.h, q, dq / ctx.h, None)
+    return ctx.h * total
+
+
+def test_stage_values_match_basis():
+    ctx = _context()
+    theta = _theta(4, 2, seed=3)
+    q, dq = stage_values(ctx.basis, theta, ctx.nodes)
+    assert q.shape == dq.shape == (5, 2)
+    for j, c in enumerate(ctx.nodes):
+        np.testing.assert_allclose(q[j], ctx.basis.evaluate(theta, c), rtol=1e-15)
+        np.testing.assert_allclose(
+            dq[j], jax.jacfwd(lambda s: ctx.basis.evaluate(theta, s))(c), rtol=1e-13
+        )
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_action_gradient_is_grad_of_discrete_action(seed):
+    ctx = _context()
+    theta = _theta(4, 2, seed=seed)
+    expected = jax.jit(jax.grad(lambda th: _discrete_action(ctx, th)))(theta)
+    got = jax.jit(lambda th: action_gradient(ctx, th))(theta)
+    assert got.shape == theta.shape
+    np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-12, atol=1e-13)
+    assert float(jnp.max(jnp.abs(expected))) > 1e-2  # not a trivially zero comparison
+
+
+def test_free_endpoints_residual():
+    ctx = _context()
+    theta = _theta(4, 2, seed=5)
+    p1 = jnp.asarray([0.3, -0.8], F64)
+    r_theta, r_cont = jax.jit(lambda x: FreeEndpoints().residual(x, ctx))((theta, p1))
+    assert r_theta.shape == theta.shape and r_cont.shape == ctx.q0.shape
+    zero, one = jnp.zeros((), F64), jnp.ones((), F64)
+    np.testing.assert_allclose(
+        np.asarray(r_cont), np.asarray(ctx.q0 - ctx.basis.evaluate(theta, zero)), rtol=1e-15
+    )
+
+    def boundary_minus_action(th):
+        ends = p1 @ ctx.basis.evaluate(th, one) - ctx.p0 @ ctx.basis.evaluate(th, zero)
+        return ends - _discrete_action(ctx, th)
+
+    expected = jax.jit(jax.grad(boundary_minus_action))(theta)
+    np.testing.assert_allclose(np.asarray(r_theta), np.asarray(expected), rtol=1e-12, atol=1e-13)
+
+    q1, p_end = FreeEndpoints().end_state((theta, p1), ctx)
+    np.testing.assert_allclose(q1, ctx.basis.evaluate(theta, one), rtol=1e-15)
+    np.testing.assert_array_equal(p_end, p1)
+
+
+# -- 7. implicit midpoint seed ---------------------------------------------------------------
+
+
+def oscillator(t, q, v, args):
+    return jnp.sum(0.5 * v**2 - 0.5 * q**2)
+
+
+def _midpoint(term, t, h, q0, p0, substeps, iterations=3, dtype=F64):
+    return implicit_midpoint(
+        term,
+        jnp.asarray(t, dtype),
+        jnp.asarray(h, dtype),
+        jnp.asarray(q0, dtype),
+        jnp.asarray(p0, dtype),
+        None,
+        substeps,
+        iterations,
+    )
+
+
+def test_implicit_midpoint_second_order_on_oscillator():
+    term = LagrangianTerm(oscillator)
+    q0, p0, h = 0.5, 0.3, 1.0
+    q_exact = q0 * math.cos(h) + p0 * math.sin(h)
+    p_exact = p0 * math.cos(h) - q0 * math.sin(h)
+    errors_q, errors_p = [], []
+    for n in (4, 8, 16, 32):
+        qs, p_end = _midpoint(term, 0.0, h, [q0], [p0], n)
+        assert qs.shape == (n + 1, 1)
+        assert float(qs[0, 0]) == q0
+        errors_q.append(abs(float(qs[-1, 0]) - q_exact))
+        errors_p.append(abs(float(p_end[0]) - p_exact))
+    for errors in (errors_q, errors_p):
+        for e0, e1 in zip(errors, errors[1:], strict=False):
+            assert 3.5 < e0 / e1 < 4.5, errors
+    assert errors_q[-1] < 1e-4
+
+
+def test_implicit_midpoint_intermediate_labels_on_grid():
+    term = LagrangianTerm(oscillator)
+    n, h = 64, 0.8
+    qs, _ = _midpoint(term, 0.0, h, [1.0], [0.0], n)
+    exact = np.cos(h * np.arange(n + 1) / n)
+    np.testing.assert_allclose(np.asarray(qs[:, 0]), exact, atol=1e-4)
+
+
+def test_implicit_midpoint_degenerate_pendulum():
+    problem = problems.pendulum()
+    q0, p0 = problem.y0
+    h, n = 0.5, 10
+    qs, p_end = _midpoint(problem.term, problem.t0, h, q0, p0, n, iterations=4)
+    assert qs.shape == (n + 1, 2)
+    assert bool(jnp.all(jnp.isfinite(qs))) and bool(jnp.all(jnp.isfinite(p_end)))
+    q_ref, p_ref = problem.reference(np.asarray([problem.t0 + h]))
+    np.testing.assert_allclose(np.asarray(qs[-1]), q_ref[0], atol=1e-3)
+    np.testing.assert_allclose(np.asarray(p_end), p_ref[0], atol=1e-3)
+    # The constraint p₂ = 0 of the degenerate Lagrangian is kept (f₂ vanishes at the midpoint).
+    assert abs(float(p_end[1])) < 1e-12
+    # And it converges with the second order of the midpoint rule.
+    qs2, _ = _midpoint(problem.term, problem.t0, h, q0, p0, 2 * n, iterations=4)
+    e1 = np.max(np.abs(np.asarray(qs[-1]) - q_ref[0]))
+    e2 = np.max(np.abs(np.asarray(qs2[-1]) - q_ref[0]))
+    assert 3.0 < e1 / e2 < 5.0
+
+
+def time_dependent(t, q, v, args):
+    return jnp.sum(0.5 * v**2 - 0.5 * q**2 * (1 + t))
+
+
+def test_implicit_midpoint_starts_at_given_time():
+    term = LagrangianTerm(time_dependent)
+    at0 = _midpoint(term, 0.0, 0.5, [0.5], [0.2], 8)
+    at5 = _midpoint(term, 5.0, 0.5, [0.5], [0.2], 8)
+    assert abs(float(at0[0][-1, 0]) - float(at5[0][-1, 0])) > 1e-3
+    # Starting at t = 5 is the same as starting at 0 with the Lagrangian shifted by 5.
+    shifted = LagrangianTerm(lambda t, q, v, args: time_dependent(t + 5.0, q, v, args))
+    ref = _midpoint(shifted, 0.0, 0.5, [0.5], [0.2], 8)
+    np.testing.assert_allclose(np.asarray(at5[0]), np.asarray(ref[0]), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(at5[1]), np.asarray(ref[1]), rtol=1e-13, atol=1e-15)
+
+
+def test_implicit_midpoint_float32():
+    term = LagrangianTerm(oscillator)
+    qs, p_end = _midpoint(term, 0.0, 1.0, [0.5], [0.3], 8, dtype=jnp.float32)
+    assert qs.dtype == jnp.float32 and p_end.dtype == jnp.float32
+    assert abs(float(qs[-1, 0]) - (0.5 * math.cos(1.0) + 0.3 * math.sin(1.0))) < 1e-2
+
+
+def test_implicit_midpoint_iode_oscillator_matches_lagrangian():
+    iode = IODETerm(lambda t, q, v, a: v, lambda t, q, v, a: -q)
+    lag = LagrangianTerm(oscillator)
+    a = _midpoint(iode, 0.0, 1.0, [0.5], [0.3], 6)
+    b = _midpoint(lag, 0.0, 1.0, [0.5], [0.3], 6)
+    np.testing.assert_allclose(np.asarray(a[0]), np.asarray(b[0]), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(a[1]), np.asarray(b[1]), rtol=1e-14)
