@@ -8,7 +8,7 @@ from .dictionaries import AbstractDictionary, BiasGrid1d
 from .fits import AbstractFit, WeightedQR
 from .selection import AbstractSelection, RawProjection
 
-__all__ = ["OGA"]
+__all__ = ["OGA", "OGAReference"]
 
 
 class OGA(eqx.Module):
@@ -62,3 +62,17 @@ class OGA(eqx.Module):
     def label(self) -> str:
         """`"<dictionary>/<selection>/<fit>"`, e.g. `"grid1d/raw/qr"` for `OGA1d()`."""
         return f"{self.dictionary.label}/{self.selection.label}/{self.fit.label}"
+
+
+class OGAReference(eqx.Module):
+    """The reference's original seed, kept verbatim as a baseline (see `OGA1dNormalEquations`).
+
+    Not a point of the dictionary × selection × fit space: it has none of the guard rails and
+    deliberately computes in float64 (needs `jax_enable_x64`). `oga_fit` dispatches on it.
+    Only for `NoSymmetry` and no modulation (the plain network integrator).
+    """
+
+    @property
+    def label(self) -> str:
+        """`"reference/raw/normaleq+f64"`."""
+        return "reference/raw/normaleq+f64"

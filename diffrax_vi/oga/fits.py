@@ -11,16 +11,46 @@ solve, and a non-finite ridged solution to zeros.
 from __future__ import annotations
 
 import abc
+import math
 
 import equinox as eqx
+import jax
 import jax.lax as lax
 import jax.numpy as jnp
 from jaxtyping import Array
 
 from .numerics import as_dtype, eps, sumsq
-from .qr import QRState, pivoted_lstsq
+from .qr import QRState, jacobi_svd, lu_solve, pivoted_lstsq, upper_solve
 
-__all__ = ["AbstractFit", "WeightedQR", "ridged_lstsq", "guarded_solve"]
+__all__ = [
+    "AbstractFit",
+    "WeightedQR",
+    "IncrementalQR",
+    "PivotedQR",
+    "TruncatedSVD",
+    "NormalEquationsFit",
+    "ridged_lstsq",
+    "guarded_solve",
+]
+
+
+def _check_rtol(rtol):
+    if rtol is None:
+        return None
+    if isinstance(rtol, bool) or not isinstance(rtol, int | float):
+        raise ValueError(f"rtol must be a real number or None, got {rtol!r}")
+    rtol = float(rtol)
+    if not (math.isfinite(rtol) and 0 <= rtol < 1):
+        raise ValueError(f"rtol must lie in [0, 1), got {rtol!r}")
+    return rtol
+
+
+def _default_rtol(rtol, dtype, num_rows, ncols) -> Array:
+    """`rtol` in `dtype`, or the default `eps max(4, min(M, k))` (the pinv-style cut)."""
+    if rtol is not None:
+        return as_dtype(rtol, dtype)
+    dim = jnp.maximum(4, jnp.minimum(ncols, num_rows)).astype(dtype)
+    return dim * eps(dtype)
 
 
 class AbstractFit(eqx.Module):
@@ -72,6 +102,141 @@ class WeightedQR(AbstractFit):
     @property
     def label(self) -> str:
         return "qr"
+
+
+class IncrementalQR(AbstractFit):
+    """Reuse the greedy loop's incremental QR: `x = R^-1 Q^T y`, `O(M k)` per step.
+
+    Equal to `WeightedQR` up to rounding as long as the factorisation is well conditioned; it
+    shares `Q` with `OrthogonalProjection` (together, the cheap and stable pairing). A zero
+    diagonal of `R` (which the QR append never produces for an accepted column) gives a
+    non-finite solution and hence the ridged fallback.
+    """
+
+    def solve(self, design, target, qr, ncols):
+        del design
+        live = jnp.arange(qr.r.shape[0]) < ncols
+        return upper_solve(qr.r, qr.q.T @ target, live)
+
+    @property
+    def label(self) -> str:
+        return "incqr"
+
+
+class PivotedQR(AbstractFit):
+    """Rank-revealing Householder QR with column pivoting, solved from scratch each step.
+
+    Like `WeightedQR`, but with the pinv-style rank cut: the factorisation stops at the
+    first pivot `|alpha| <= rtol |alpha_0|`, and dependent columns get zero coefficients.
+
+    **Arguments:**
+
+    - `rtol`: the relative cut (a Python float), or `None` (default) for
+        `eps(T) max(4, min(M, k))`.
+    """
+
+    rtol: float | None = eqx.field(static=True, default=None, converter=_check_rtol)
+
+    def solve(self, design, target, qr, ncols):
+        del qr
+        rtol = _default_rtol(self.rtol, design.dtype, design.shape[0], ncols)
+        return pivoted_lstsq(design, target, rtol)
+
+    @property
+    def label(self) -> str:
+        return "pivqr"
+
+
+class TruncatedSVD(AbstractFit):
+    """Truncated pseudo-inverse from a one-sided Jacobi SVD: the minimum-norm solution.
+
+    `x = sum_j (u_j^T y / s_j) v_j` over the singular values `s_j > rtol max(s)`; zeros if
+    `max(s)` is zero or not finite. On a (nearly) duplicated pair of columns it spreads the
+    weight over both, with the same residual as `PivotedQR` and a smaller `||x||`. The most
+    robust fit at every precision. The cut is deliberately far below `sqrt(eps)`: a gain
+    floor of `sqrt(eps)` in the selection admits directions that small.
+
+    **Arguments:**
+
+    - `rtol`: the relative cut (a Python float), or `None` (default) for
+        `eps(T) max(4, min(M, k))`.
+    """
+
+    rtol: float | None = eqx.field(static=True, default=None, converter=_check_rtol)
+
+    def solve(self, design, target, qr, ncols):
+        del qr
+        dtype = design.dtype
+        zero = as_dtype(0, dtype)
+        rtol = _default_rtol(self.rtol, dtype, design.shape[0], ncols)
+        u, s, v = jacobi_svd(design)
+        finite = jnp.isfinite(s)
+        smax = jnp.max(jnp.where(finite, s, zero))
+        ok = jnp.all(finite) & (smax > 0)
+        keep = finite & (s > rtol * smax)
+        coeff = jnp.where(keep, (u.T @ target) / jnp.where(keep, s, as_dtype(1, dtype)), zero)
+        return jnp.where(ok, v @ coeff, jnp.zeros_like(coeff))
+
+    @property
+    def label(self) -> str:
+        return "tsvd"
+
+
+class NormalEquationsFit(AbstractFit):
+    """The normal equations `(A^T A + lam I) x = A^T y`, solved by LU: a baseline only.
+
+    Squares the condition number of the design, which is why the reference's normal equations
+    needed float64. With `ridge`, `lam = 100 eps tr(A^T A) / k` (the eps of the solve dtype).
+    An exactly zero pivot makes the solve non-finite and so falls back to the ridged
+    least squares.
+
+    **Arguments:**
+
+    - `ridge`: add the Tikhonov term (default `True`).
+    - `island`: solve in float64 and round the result back to the working dtype (default
+        `False`). This deliberately breaks the precision discipline (it reproduces the
+        reference's arithmetic) and needs `jax_enable_x64`; otherwise tracing the fit raises
+        `ValueError`.
+    """
+
+    ridge: bool = eqx.field(static=True, default=True)
+    island: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        for name in ("ridge", "island"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"NormalEquationsFit {name} must be a bool")
+
+    def solve(self, design, target, qr, ncols):
+        del qr
+        dtype = design.dtype
+        if self.island:
+            if not jax.config.jax_enable_x64:
+                raise ValueError(
+                    "NormalEquationsFit(island=True) solves in float64, which needs "
+                    "jax.config.update('jax_enable_x64', True)"
+                )
+            design = design.astype(jnp.float64)
+            target = target.astype(jnp.float64)
+        sdtype = design.dtype
+        k = design.shape[1]
+        used = jnp.arange(k) < ncols
+        gram = design.T @ design
+        rhs = design.T @ target
+        if self.ridge:
+            count = jnp.maximum(ncols, 1).astype(sdtype)
+            lam = as_dtype(100, sdtype) * eps(sdtype) * jnp.trace(gram) / count
+            gram = gram + jnp.diag(jnp.where(used, lam, as_dtype(0, sdtype)))
+        # Unused slots: an identity block with a zero right-hand side (zero coefficients).
+        eye = jnp.eye(k, dtype=bool)
+        both = used[:, None] & used[None, :]
+        gram = jnp.where(both, gram, jnp.where(eye, as_dtype(1, sdtype), as_dtype(0, sdtype)))
+        rhs = jnp.where(used, rhs, as_dtype(0, sdtype))
+        return lu_solve(gram, rhs).astype(dtype)
+
+    @property
+    def label(self) -> str:
+        return "normaleq" + ("+ridge" if self.ridge else "") + ("+f64" if self.island else "")
 
 
 def ridged_lstsq(

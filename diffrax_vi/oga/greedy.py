@@ -38,7 +38,8 @@ import numpy as np
 from jaxtyping import Array
 
 from ..activations import check_activation
-from .config import OGA
+from .config import OGA, OGAReference
+from .dictionaries import Refined
 from .fits import guarded_solve
 from .numerics import as_dtype, eps, norm2, power_of_two_scale, sqrt_eps
 from .qr import QRState, qr_append, qr_init
@@ -91,6 +92,7 @@ class _Dictionary(NamedTuple):
     usable: Array
     colscale: Array  # sqrt(weights) * modulation * scale
     scale: Array
+    nfloor: Array  # norm floor of usable atoms (scaled units)
 
 
 class _Carry(NamedTuple):
@@ -113,7 +115,7 @@ class _Carry(NamedTuple):
 
 
 def oga_fit(
-    config: OGA,
+    config: OGA | OGAReference,
     activation: Callable,
     nodes: Array,
     weights: Array,
@@ -143,7 +145,9 @@ def oga_fit(
 
     **Arguments:**
 
-    - `config`: the `OGA` configuration (static).
+    - `config`: the `OGA` configuration (static), or `OGAReference()` (from
+        `OGA1dNormalEquations()`) for the reference's unguarded float64 baseline, which takes
+        no `modulation` or `symmetry`.
     - `activation`: the elementwise activation `sigma`; it must keep the dtype `T`
         (checked, a promoting activation raises `ValueError`). Must be hashable.
     - `nodes`: `(M,)` sample points `t_j` in `[0, 1]`; their dtype is the working dtype `T`.
@@ -154,13 +158,23 @@ def oga_fit(
     - `dict_amount`: the dictionary resolution (number of bias intervals for `BiasGrid1d`).
     - `modulation`: optional `(M,)` factor multiplying every atom (e.g. `t (1 - t)` for an
         ansatz that vanishes at both ends); dtype `T`.
-    - `symmetry`: how atoms map to neurons; `None` (the default) means `NoSymmetry()`, the
-        only one that exists so far.
+    - `symmetry`: how atoms map to neurons; `None` (the default) means `NoSymmetry()`;
+        `MirrorPairs()` and `SharedMirrorPairs()` place mirrored pairs (even `width` only).
 
     **Returns:**
 
     An `OGAResult`.
     """
+    if isinstance(config, OGAReference):
+        if modulation is not None or not isinstance(symmetry, NoSymmetry | None):
+            raise ValueError(
+                "the reference seed (OGA1dNormalEquations) takes no modulation and no symmetry"
+            )
+        nodes, weights, y, _, bias_interval = _validate(
+            OGA(), activation, nodes, weights, y, width, bias_interval, dict_amount, None,
+            NoSymmetry(),
+        )  # fmt: skip
+        return _reference_jit(activation, nodes, weights, y, width, bias_interval, dict_amount)
     if symmetry is None:
         symmetry = NoSymmetry()
     nodes, weights, y, modulation, bias_interval = _validate(
@@ -251,6 +265,15 @@ def _validate(
 
 
 @eqx.filter_jit
+def _reference_jit(activation, nodes, weights, y, width, bias_interval, dict_amount):
+    from .reference import oga_reference_fit  # (imports this module)
+
+    return oga_reference_fit(
+        activation, nodes, weights, y, int(width), bias_interval, int(dict_amount)
+    )
+
+
+@eqx.filter_jit
 def _oga_fit_jit(
     config, activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
 ):
@@ -297,7 +320,7 @@ def _build_dictionary(
     # Scaling is exact (a power of two); unusable atoms are zeroed so no Inf/NaN reaches a
     # product. Stored one column per atom: `r @ psi_t` streams contiguous memory.
     psi_t = jnp.where(usable[None, :], psi.T * scale, zero)
-    return _Dictionary(atom_w, atom_b, psi_t, norms, usable, colscale * scale, scale)
+    return _Dictionary(atom_w, atom_b, psi_t, norms, usable, colscale * scale, scale, nfloor)
 
 
 def _oga_fit_impl(
@@ -371,7 +394,22 @@ def _greedy(
         stop = (scores[best] < 0) | negligible(c.resid)
 
         wa, ba = dic.atom_w[best], dic.atom_b[best]
-        row = psi_t[:, best]
+        if isinstance(config.dictionary, Refined):
+            wa, ba = _refine(
+                config.dictionary,
+                config.selection,
+                activation,
+                dic,
+                nodes,
+                c.resid,
+                c.qr,
+                wa,
+                ba,
+                symmetry,
+            )
+            row = symmetry.scoring_rows(activation, wa[None], ba[None], nodes, dic.colscale)[0]
+        else:
+            row = psi_t[:, best]
         columns = symmetry.fit_columns(activation, wa, ba, nodes, dic.colscale, row)
         qr = c.qr
         gain = zero
@@ -493,3 +531,50 @@ def _fill_unused(slot_w, slot_b, step, avail, atoms, dic):
         jnp.where(live, dic.atom_w[idx], slot_w),
         jnp.where(live, dic.atom_b[idx], slot_b),
     )
+
+
+def _refine(refined, selection, activation, dic, nodes, resid, qr, w, b, symmetry):
+    """Compass search of `(w, b)` on the normalised candidate score (see `Refined`)."""
+    dtype = resid.dtype
+    e = eps(dtype)
+    zero = as_dtype(0, dtype)
+    one = as_dtype(1, dtype)
+    neg_inf = as_dtype(-jnp.inf, dtype)
+    shrink = as_dtype(refined.shrink, dtype)
+
+    def score(wc, bc):
+        g = symmetry.scoring_rows(activation, wc[None], bc[None], nodes, dic.colscale)[0]
+        n = norm2(g)
+        p = jnp.abs(g @ resid)
+        usable = jnp.isfinite(p) & jnp.isfinite(n) & (n > dic.nfloor)
+        g = jnp.where(usable, g, zero)
+        denom = selection.candidate_denominator(jnp.where(usable, n, one), g, qr)
+        ok = usable & (denom > 0)
+        return jnp.where(ok, p / jnp.where(ok, denom, one), neg_inf)
+
+    best = score(w, b)
+    h = (sqrt_eps(dtype) + jnp.abs(w) + jnp.abs(b)) / as_dtype(8, dtype)
+    active = jnp.isfinite(best) & jnp.isfinite(h) & (h > e)
+
+    def sweep(_, carry):
+        w, b, best, h, active = carry
+        improved = jnp.zeros((), bool)
+        for move in range(4):
+            if move == 0:
+                cw, cb = w + h, b
+            elif move == 1:
+                cw, cb = w - h, b
+            elif move == 2:
+                cw, cb = w, b + h
+            else:
+                cw, cb = w, b - h
+            s = score(cw, cb)
+            take = active & jnp.isfinite(s) & (s > best)
+            w, b = jnp.where(take, cw, w), jnp.where(take, cb, b)
+            best = jnp.where(take, s, best)
+            improved = improved | take
+        h = jnp.where(active & ~improved, h * shrink, h)
+        return w, b, best, h, active & (h > e)
+
+    w, b, _, _, _ = lax.fori_loop(0, refined.iterations, sweep, (w, b, best, h, active))
+    return w, b

@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
-from .config import OGA
-from .dictionaries import BiasGrid1d
-from .fits import WeightedQR
-from .selection import NormalizedProjection, RawProjection
+from .config import OGA, OGAReference
+from .dictionaries import AbstractDictionary, AngularGrid, BiasGrid1d, WeightBiasGrid2d
+from .fits import IncrementalQR, WeightedQR
+from .selection import NormalizedProjection, OrthogonalProjection, RawProjection
 
-__all__ = ["OGA1d", "OGA1dNormalized"]
+__all__ = [
+    "OGA1d",
+    "OGA1dNormalized",
+    "OGA1dStable",
+    "OGA2d",
+    "OGASphere",
+    "OGA1dNormalEquations",
+]
 
 
 def OGA1d(*, coherence: bool = True, norm_guard: bool = True, fill_unused: bool = True) -> OGA:
@@ -49,3 +56,82 @@ def OGA1dNormalized(
         norm_guard=norm_guard,
         fill_unused=fill_unused,
     )
+
+
+def OGA1dStable(
+    *, coherence: bool = True, norm_guard: bool = True, fill_unused: bool = True
+) -> OGA:
+    """The reduced-precision preset: `±1` bias grid, orthogonal projection with the gain floor
+    `sqrt(eps)`, and the incremental-QR refit (`"grid1d/orthogonal/incqr"`).
+
+    **Arguments:**
+
+    - `coherence`, `norm_guard`, `fill_unused`: the guard-rail flags of `OGA`.
+    """
+    return OGA(
+        BiasGrid1d(),
+        OrthogonalProjection(),
+        IncrementalQR(),
+        coherence=coherence,
+        norm_guard=norm_guard,
+        fill_unused=fill_unused,
+    )
+
+
+def OGA2d(
+    dictionary: AbstractDictionary | None = None,
+    *,
+    coherence: bool = True,
+    norm_guard: bool = True,
+    fill_unused: bool = True,
+) -> OGA:
+    """For smooth activations: weight × bias grid, normalised projection, incremental QR.
+
+    **Arguments:**
+
+    - `dictionary`: default `WeightBiasGrid2d()` (`"grid2d(7w)/normalized/incqr"`).
+    - `coherence`, `norm_guard`, `fill_unused`: the guard-rail flags of `OGA`.
+    """
+    return OGA(
+        WeightBiasGrid2d() if dictionary is None else dictionary,
+        NormalizedProjection(),
+        IncrementalQR(),
+        coherence=coherence,
+        norm_guard=norm_guard,
+        fill_unused=fill_unused,
+    )
+
+
+def OGASphere(
+    dictionary: AbstractDictionary | None = None,
+    *,
+    coherence: bool = True,
+    norm_guard: bool = True,
+    fill_unused: bool = True,
+) -> OGA:
+    """Atoms uniform in direction: angular grid, normalised projection, incremental QR.
+
+    **Arguments:**
+
+    - `dictionary`: default `AngularGrid()` (`"angular(1r)/normalized/incqr"`).
+    - `coherence`, `norm_guard`, `fill_unused`: the guard-rail flags of `OGA`.
+    """
+    return OGA(
+        AngularGrid() if dictionary is None else dictionary,
+        NormalizedProjection(),
+        IncrementalQR(),
+        coherence=coherence,
+        norm_guard=norm_guard,
+        fill_unused=fill_unused,
+    )
+
+
+def OGA1dNormalEquations() -> OGAReference:
+    """The reference's original seed as a baseline (`"reference/raw/normaleq+f64"`).
+
+    `±1` bias grid, raw projection of the residual of the `T`-rounded network, and float64
+    normal equations without ridge; no guard rails, no blocking of selected atoms, no fill.
+    Needs `jax_enable_x64`; for the plain network integrator only (no modulation or
+    symmetry). It takes no guard-rail keywords: it has none.
+    """
+    return OGAReference()

@@ -8,7 +8,9 @@ routines are not available):
   classical Gram–Schmidt with one re-orthogonalisation pass (CGS2); its `R` diagonal entry is
   the rank gain of the new column;
 - a column-pivoted Householder least-squares solve with a relative rank cut, used by the
-  refits; dependent or unused (all-zero) columns get a zero coefficient.
+  refits; dependent or unused (all-zero) columns get a zero coefficient;
+- a one-sided Jacobi SVD, an upper-triangular back substitution and an LU solve with partial
+  pivoting, for the other refits.
 """
 
 from __future__ import annotations
@@ -17,11 +19,20 @@ from typing import NamedTuple
 
 import jax.lax as lax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
-from .numerics import as_dtype, norm2, sumsq
+from .numerics import as_dtype, eps, norm2, sumsq
 
-__all__ = ["QRState", "qr_init", "qr_append", "pivoted_lstsq"]
+__all__ = [
+    "QRState",
+    "qr_init",
+    "qr_append",
+    "pivoted_lstsq",
+    "jacobi_svd",
+    "upper_solve",
+    "lu_solve",
+]
 
 
 class QRState(NamedTuple):
@@ -178,3 +189,143 @@ def pivoted_lstsq(a: Array, b: Array, rtol: Array) -> Array:
     z = lax.fori_loop(0, n, back, jnp.zeros((n,), dtype))
     # Undo the permutation: coefficient of original column perm[i] is z[i].
     return jnp.sum(jnp.where(perm[:, None] == ncols[None, :], z[:, None], zero), axis=0)
+
+
+def upper_solve(r: Array, rhs: Array, live: Array) -> Array:
+    """Back substitution `R z = rhs` on the live part of an upper triangle.
+
+    Entries of `z` where `live` is false are zero and their rows are skipped (their diagonal is
+    treated as one). A zero diagonal in a live row gives a non-finite result, which the
+    guarded refit replaces.
+
+    **Arguments:**
+
+    - `r`: `(K, K)` upper triangle.
+    - `rhs`: `(K,)` right-hand side.
+    - `live`: `(K,)` booleans, the rows and columns that take part.
+    """
+    n = r.shape[0]
+    dtype = r.dtype
+    zero = as_dtype(0, dtype)
+    one = as_dtype(1, dtype)
+    idx = jnp.arange(n)
+
+    def back(j, z):
+        i = n - 1 - j
+        row = r[i]
+        diag = jnp.where(live[i], row[i], one)
+        val = (rhs[i] - jnp.where(idx > i, row, zero) @ z) / diag
+        return jnp.where(idx == i, jnp.where(live[i], val, zero), z)
+
+    return lax.fori_loop(0, n, back, jnp.zeros((n,), dtype))
+
+
+def lu_solve(g: Array, rhs: Array) -> Array:
+    """Solve the square system `G x = rhs` by Gaussian elimination with partial pivoting.
+
+    At step `i` the row with the largest `|G[j, i]|`, `j >= i`, becomes the pivot row (first
+    index on ties). An exactly zero pivot is not caught: the result is then non-finite, and
+    the guarded refit falls back to the ridged solve (the analogue of a singular-matrix
+    exception). Computed in the dtype of `g`.
+    """
+    n = g.shape[0]
+    dtype = g.dtype
+    zero = as_dtype(0, dtype)
+    rows = jnp.arange(n)
+    cols = jnp.arange(n + 1)
+
+    def step(i, ab):
+        col = jnp.where(rows >= i, jnp.abs(ab[:, i]), -as_dtype(1, dtype))
+        p = jnp.argmax(col)
+        row_i, row_p = ab[i], ab[p]
+        ab = jnp.where((rows == p)[:, None], row_i[None, :], ab)
+        ab = jnp.where((rows == i)[:, None], row_p[None, :], ab)
+        pivot = row_p[i]
+        factors = jnp.where(rows > i, ab[:, i] / pivot, zero)
+        ab = ab - factors[:, None] * jnp.where(cols >= i, row_p, zero)[None, :]
+        return ab
+
+    ab = lax.fori_loop(0, n, step, jnp.concatenate([g, rhs[:, None]], axis=1))
+    return upper_solve(ab[:, :n], ab[:, n], jnp.ones((n,), bool))
+
+
+def jacobi_svd(a: Array, max_sweeps: int = 30) -> tuple[Array, Array, Array]:
+    """Thin SVD `a = U diag(s) V^T` by one-sided (Hestenes) Jacobi rotations.
+
+    Sweeps visit the column pairs `(i, j)`, `i < j`, in lexicographic order and rotate the
+    pair until it is orthogonal. A pair is skipped when `beta = <a_i, a_j>` is zero or not
+    finite, or `|beta| <= eps sqrt(alpha) sqrt(gamma)` with `alpha`, `gamma` the squared column
+    norms: the two square roots are taken separately, because `sqrt(alpha gamma)` overflows
+    in float16 once column norms pass about 16, which would silently skip every rotation.
+    Stops after a sweep without rotation, or after `max_sweeps` sweeps. Everything is in the
+    dtype of `a` (so it also runs in float16).
+
+    **Arguments:**
+
+    - `a`: the `(M, K)` matrix.
+    - `max_sweeps`: the sweep budget (static; default 30).
+
+    **Returns:**
+
+    `(u, s, v)`: `u` `(M, K)` with unit columns (zero where `s` is zero or not finite), `s`
+    `(K,)` the column norms after rotation, **unsorted** (in the column order of `v`), and `v`
+    `(K, K)` orthogonal.
+    """
+    m, n = a.shape
+    dtype = a.dtype
+    e = eps(dtype)
+    zero = as_dtype(0, dtype)
+    one = as_dtype(1, dtype)
+    two = as_dtype(2, dtype)
+    pi_, pj_ = np.triu_indices(n, 1)
+    pairs_i = jnp.asarray(pi_, jnp.int32)
+    pairs_j = jnp.asarray(pj_, jnp.int32)
+    npairs = int(pi_.shape[0])
+    colid = jnp.arange(n)
+
+    def rotate(p, carry):
+        b, v, rotated = carry
+        i, j = pairs_i[p], pairs_j[p]
+        bi, bj = b[:, i], b[:, j]
+        alpha, gamma, beta = sumsq(bi), sumsq(bj), bi @ bj
+        skip = (
+            (beta == 0)
+            | ~jnp.isfinite(beta)
+            | (jnp.abs(beta) <= e * jnp.sqrt(alpha) * jnp.sqrt(gamma))
+        )
+        safe_beta = jnp.where(skip, one, beta)
+        zeta = (gamma - alpha) / (two * safe_beta)
+        az = jnp.abs(zeta)
+        # sqrt(1 + zeta^2) without overflowing zeta^2 (float16 overflows past |zeta| ~ 256).
+        big = az > one
+        inv = one / jnp.where(big, az, one)
+        root = jnp.where(big, az * jnp.sqrt(one + inv * inv), jnp.sqrt(one + az * az))
+        t = jnp.where(zeta >= 0, one, -one) / (az + root)
+        cs = one / jnp.sqrt(one + t * t)
+        sn = cs * t
+        cs = jnp.where(skip, one, cs)
+        sn = jnp.where(skip, zero, sn)
+
+        def apply(x):
+            xi, xj = x[:, i], x[:, j]
+            new_i, new_j = cs * xi - sn * xj, sn * xi + cs * xj
+            x = jnp.where((colid == i)[None, :], new_i[:, None], x)
+            return jnp.where((colid == j)[None, :], new_j[:, None], x)
+
+        return apply(b), apply(v), rotated | ~skip
+
+    def sweep_cond(carry):
+        _, _, rotated, sweeps = carry
+        return rotated & (sweeps < max_sweeps)
+
+    def sweep(carry):
+        b, v, _, sweeps = carry
+        b, v, rotated = lax.fori_loop(0, npairs, rotate, (b, v, jnp.zeros((), bool)))
+        return b, v, rotated, sweeps + 1
+
+    init = (a, jnp.eye(n, dtype=dtype), jnp.asarray(npairs > 0), jnp.zeros((), jnp.int32))
+    b, v, _, _ = lax.while_loop(sweep_cond, sweep, init)
+    s = norm2(b, axis=0)
+    good = jnp.isfinite(s) & (s > 0)
+    u = jnp.where(good[None, :], b / jnp.where(good, s, one)[None, :], zero)
+    return u, s, v
