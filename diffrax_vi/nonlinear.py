@@ -90,12 +90,15 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
     """
 
     lam: eqx.AbstractVar[float]
-    ftol: eqx.AbstractVar[float | None]
-    floor: eqx.AbstractVar[float | None]
-    max_backtracks: eqx.AbstractVar[int]
-    max_stalls: eqx.AbstractVar[int]
-    patience_floor: eqx.AbstractVar[int]
-    patience: eqx.AbstractVar[int]
+    ftol: float | None = None
+    floor: float | None = None
+    max_backtracks: int = eqx.field(static=True, default=30)
+    max_stalls: int = eqx.field(static=True, default=3)
+    patience_floor: int = eqx.field(static=True, default=10)
+    patience: int = eqx.field(static=True, default=50)
+    rtol: float | None = None
+    atol: float | None = None
+    norm: Callable = optx.max_norm
 
     def direction(self, jac: Array, f: Array) -> Array:
         """The step from the Jacobian and the residual."""
@@ -245,15 +248,6 @@ class LevenbergMarquardt(AbstractDampedNewton):
     """
 
     lam: float = 1e-3
-    ftol: float | None = None
-    floor: float | None = None
-    max_backtracks: int = eqx.field(static=True, default=30)
-    max_stalls: int = eqx.field(static=True, default=3)
-    patience_floor: int = eqx.field(static=True, default=10)
-    patience: int = eqx.field(static=True, default=50)
-    rtol: float | None = None
-    atol: float | None = None
-    norm: Callable = optx.max_norm
 
     def direction(self, jac, f):
         eps = jnp.finfo(f.dtype).eps
@@ -276,15 +270,6 @@ class RegularisedNewton(AbstractDampedNewton):
     """
 
     lam: float = 2.4e-7
-    ftol: float | None = None
-    floor: float | None = None
-    max_backtracks: int = eqx.field(static=True, default=30)
-    max_stalls: int = eqx.field(static=True, default=3)
-    patience_floor: int = eqx.field(static=True, default=10)
-    patience: int = eqx.field(static=True, default=50)
-    rtol: float | None = None
-    atol: float | None = None
-    norm: Callable = optx.max_norm
 
     def direction(self, jac, f):
         n = f.shape[0]
