@@ -608,7 +608,8 @@ def test_presets_are_static():
         assert jax.tree_util.tree_leaves(cfg) == []
         assert hash(cfg) == hash(type(cfg)(cfg.dictionary, cfg.selection, cfg.fit))
     assert OGA1dStable().label == "grid1d/orthogonal/incqr"
-    assert OGA2d().label == "grid2d(7w)/normalized/incqr"
+    assert OGA2d().label == "grid2d(4w)/normalized/incqr"
+    assert OGA2d(WeightBiasGrid2d()).label == "grid2d(7w)/normalized/incqr"
     assert OGASphere().label == "angular(1r)/normalized/incqr"
     assert OGA1dStable() == OGA(BiasGrid1d(), OrthogonalProjection(), IncrementalQR())
 

@@ -26,6 +26,7 @@ Differences from the reference implementation (NonlinearIntegrators.jl), on purp
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Callable
 from typing import NamedTuple
@@ -165,6 +166,7 @@ def oga_fit(
 
     An `OGAResult`.
     """
+    raw = (nodes, weights, modulation)  # before validation turns them into (traced) arrays
     if isinstance(config, OGAReference):
         if modulation is not None or not isinstance(symmetry, NoSymmetry | None):
             raise ValueError(
@@ -189,6 +191,11 @@ def oga_fit(
         modulation,
         symmetry,
     )
+    dic = _cached_dictionary(
+        config, activation, raw, nodes.dtype, bias_interval, dict_amount, symmetry
+    )
+    if dic is not None:
+        return _greedy_jit(config, activation, dic, nodes, jnp.sqrt(weights) * y, width, symmetry)
     return _oga_fit_jit(
         config,
         activation,
@@ -274,6 +281,11 @@ def _reference_jit(activation, nodes, weights, y, width, bias_interval, dict_amo
 
 
 @eqx.filter_jit
+def _greedy_jit(config, activation, dic, nodes, yhat, width, symmetry):
+    return _greedy(config, activation, dic, nodes, yhat, int(width), symmetry)
+
+
+@eqx.filter_jit
 def _oga_fit_jit(
     config, activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
 ):
@@ -321,6 +333,59 @@ def _build_dictionary(
     # product. Stored one column per atom: `r @ psi_t` streams contiguous memory.
     psi_t = jnp.where(usable[None, :], psi.T * scale, zero)
     return _Dictionary(atom_w, atom_b, psi_t, norms, usable, colscale * scale, scale, nfloor)
+
+
+_DICTIONARY_CACHE: collections.OrderedDict = collections.OrderedDict()
+_DICTIONARY_CACHE_SIZE = 16
+
+
+def _cached_dictionary(
+    config, activation, raw, dtype, bias_interval, dict_amount, symmetry
+) -> _Dictionary | None:
+    """The scaled dictionary, built once and reused, when the nodes, weights and modulation
+    `raw` were given as concrete values (NumPy arrays, or JAX arrays created outside any
+    trace); `None` when any of them is traced.
+
+    The dictionary does not depend on the target, so for fixed nodes it is a constant of the
+    fit: building it eagerly turns the largest part of a fit with a big dictionary (one
+    activation evaluation per atom and node) into an embedded constant of the compiled
+    program. An integrator passes its quadrature's nodes as NumPy arrays for this reason.
+    With traced nodes it is built inside the program instead. Results are identical.
+    """
+    arrays = tuple(a for a in raw if a is not None)
+    if any(isinstance(a, jax.core.Tracer) for a in arrays):
+        return None
+    arrays = tuple(np.asarray(a) for a in arrays)
+    modulation = arrays[2] if len(arrays) == 3 else None
+    key = (
+        config.dictionary,
+        config.norm_guard,
+        activation,
+        symmetry,
+        tuple(bias_interval),
+        int(dict_amount),
+        np.dtype(dtype).name,
+    ) + tuple(a.tobytes() for a in arrays)
+    try:
+        hash(key)
+    except TypeError:  # an unhashable activation: no caching
+        key = None
+    if key is not None and key in _DICTIONARY_CACHE:
+        _DICTIONARY_CACHE.move_to_end(key)
+        return _DICTIONARY_CACHE[key]
+    with jax.ensure_compile_time_eval():
+        nodes, weights = (jnp.asarray(a, dtype) for a in arrays[:2])
+        if modulation is not None:
+            modulation = jnp.asarray(modulation, dtype)
+        dic = _build_dictionary(
+            config, activation, nodes, weights, bias_interval, dict_amount, modulation, symmetry
+        )
+        dic = _Dictionary(*(jax.block_until_ready(jnp.asarray(v)) for v in dic))
+    if key is not None:
+        _DICTIONARY_CACHE[key] = dic
+        if len(_DICTIONARY_CACHE) > _DICTIONARY_CACHE_SIZE:
+            _DICTIONARY_CACHE.popitem(last=False)
+    return dic
 
 
 def _oga_fit_impl(

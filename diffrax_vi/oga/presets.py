@@ -87,13 +87,23 @@ def OGA2d(
 ) -> OGA:
     """For smooth activations: weight × bias grid, normalised projection, incremental QR.
 
+    The default dictionary keeps hidden weights `|w| ≤ 1` (magnitudes `1/8, 1/4, 1/2, 1`):
+    the reference's grid also has `2, 4, 8`, whose atoms switch within a fraction of the step,
+    and seeds built from them left the Newton solve of every `NetworkVI` configuration we tried
+    (harmonic oscillator, tanh/GELU width 10 and ReLU³ width 4) at a residual plateau, while
+    with `|w| ≤ 1` tanh and GELU converge to ~1e-13 (`benchmarks/seed_presets.py`). Pass
+    `WeightBiasGrid2d()` for the reference's grid.
+
     **Arguments:**
 
-    - `dictionary`: default `WeightBiasGrid2d()` (`"grid2d(7w)/normalized/incqr"`).
+    - `dictionary`: default `WeightBiasGrid2d(octaves=(-3.0, 0.0), weight_amount=3)`
+        (`"grid2d(4w)/normalized/incqr"`).
     - `coherence`, `norm_guard`, `fill_unused`: the guard-rail flags of `OGA`.
     """
+    if dictionary is None:
+        dictionary = WeightBiasGrid2d(octaves=(-3.0, 0.0), weight_amount=3)
     return OGA(
-        WeightBiasGrid2d() if dictionary is None else dictionary,
+        dictionary,
         NormalizedProjection(),
         IncrementalQR(),
         coherence=coherence,
