@@ -281,6 +281,13 @@ def _reference_jit(activation, nodes, weights, y, width, bias_interval, dict_amo
 
 
 @eqx.filter_jit
+def _first_argmax(x: Array, index: Array) -> Array:
+    """`argmax` of a finite vector (first index on ties), as a max and an index min: two
+    plain reductions, about twice as fast as XLA's CPU argmax on a large dictionary."""
+    top = jnp.max(x)
+    return jnp.min(jnp.where(x == top, index, jnp.int32(x.shape[0]))).astype(jnp.int32)
+
+
 def _greedy_jit(config, activation, dic, nodes, yhat, width, symmetry):
     return _greedy(config, activation, dic, nodes, yhat, int(width), symmetry)
 
@@ -455,7 +462,7 @@ def _greedy(
         scores = config.selection.scores(proj, norms, psi_t, c.qr)
         ok = avail & jnp.isfinite(proj) & jnp.isfinite(scores)
         scores = jnp.where(ok, scores, as_dtype(-1, dtype))
-        best = jnp.argmax(scores).astype(jnp.int32)
+        best = _first_argmax(scores, atom_index)
         stop = (scores[best] < 0) | negligible(c.resid)
 
         wa, ba = dic.atom_w[best], dic.atom_b[best]
