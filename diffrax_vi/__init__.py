@@ -5,10 +5,17 @@ float64 needs `jax.config.update("jax_enable_x64", True)`; the library never fli
 
 from . import oga, problems
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
-from .ansatz import AbstractBasis, ShallowNetBasis
-from .formulation import FreeEndpoints
+from .ansatz import AbstractBasis, LagrangeBasis, ShallowNetBasis
+from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .interpolation import NetworkInterpolation
-from .methods import ShallowNet
+from .methods import (
+    CGVI,
+    VISE,
+    ShallowNet,
+    ShallowNetAutodiff,
+    ShallowNetAutodiffReversible,
+    ShallowNetReversible,
+)
 from .nonlinear import LevenbergMarquardt, RegularisedNewton
 from .oga import (
     OGA,
@@ -36,7 +43,16 @@ from .oga import (
     oga_fit,
 )
 from .quadrature import GaussLegendre, Simpson
-from .seeding import IntegratorExtrapolation, NoExtrapolation, PreviousStep
+from .seeding import (
+    AbstractInitialTrajectory,
+    AbstractParameterSeed,
+    HermiteExtrapolation,
+    InitialWeights,
+    IntegratorExtrapolation,
+    LeastSquaresFit,
+    NoExtrapolation,
+    PreviousStep,
+)
 from .solver import NetworkVI, NetworkVIState
 from .terms import IODETerm, LagrangianTerm
 
@@ -44,6 +60,19 @@ __version__ = "0.1.0.dev0"
 
 __all__ = [
     "AbstractBasis",
+    "AbstractFormulation",
+    "AbstractInitialTrajectory",
+    "AbstractParameterSeed",
+    "CGVI",
+    "HermiteExtrapolation",
+    "InitialWeights",
+    "InterpolatingEndpoints",
+    "LagrangeBasis",
+    "LeastSquaresFit",
+    "ShallowNetAutodiff",
+    "ShallowNetAutodiffReversible",
+    "ShallowNetReversible",
+    "VISE",
     "AngularGrid",
     "BiasGrid1d",
     "FreeEndpoints",

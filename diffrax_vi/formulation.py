@@ -1,46 +1,71 @@
 """The discrete action of one step and the variational equations built from it.
 
 On a step `[t_n, t_n + h]` with local time `τ ∈ [0, 1]` and a quadrature rule `(c_j, b_j)`,
-the discrete action of a trial curve `q_h(τ; θ)` is
+the discrete action of a trial curve `q_h(τ)` is
 
-    A(θ) = h Σ_j b_j L(t_n + c_j h, q_h(c_j), q_h'(c_j) / h).
+    A = h Σ_j b_j L(t_n + c_j h, q_h(c_j), q_h'(c_j) / h).
 
-Its gradient is assembled from the momentum `ϑ = ∂L/∂v` and force `f = ∂L/∂q` at the nodes,
-pulled back through the stage map `θ ↦ (q_h(c_j), q_h'(c_j))` by one vector-Jacobian product:
+Its gradient with respect to anything the curve depends on (network parameters, endpoint
+positions) is the momentum `ϑ = ∂L/∂v` and force `f = ∂L/∂q` at the nodes pulled back through
+the stage map `x ↦ (q_h(c_j), q_h'(c_j))` by one vector-Jacobian product:
 
-    ∂A/∂θ = Σ_j b_j [ h f_j · ∂q_h(c_j)/∂θ + ϑ_j · ∂q_h'(c_j)/∂θ ].
+    ∂A/∂x = Σ_j b_j [ h f_j · ∂q_h(c_j)/∂x + ϑ_j · ∂q_h'(c_j)/∂x ].
 
-For a `LagrangianTerm` this is exactly `jax.grad` of `A`; written through `(ϑ, f)` it also
-covers degenerate systems given only by those maps (`IODETerm`).
+For a `LagrangianTerm` this is `jax.grad` of `A`; written through `(ϑ, f)` it also covers
+degenerate systems given only by those maps (`IODETerm`). Two formulations turn it into a
+square system for one step (each equation sits at the position of "its" unknown, which
+matters for the `J + λI` regularisation):
 
-**Free endpoints** (the reference's ShallowNet family): unknowns `θ` and `p_{n+1}`, equations
+**Free endpoints** (`FreeEndpoints`; the reference's ShallowNet, ShallowNetReversible,
+DenseNet, VISE, and classical cGVI): the curve is the ansatz itself, `q_h(τ) = N(τ; θ)`;
+unknowns `θ` and `p_{n+1}`; equations
 
     ∂/∂θ [ p_{n+1}·q_h(1) − p_n·q_h(0) − A(θ) ] = 0,      q_n − q_h(0) = 0,
 
-then `q_{n+1} = q_h(1)`. Each equation sits at the position of "its" unknown (the rows of `θ`,
-then continuity at the position of `p_{n+1}`), which matters for the `J + λI` regularisation.
+then `q_{n+1} = q_h(1)`.
+
+**Interpolating endpoints** (`InterpolatingEndpoints`; the reference's ShallowNetAutodiff
+pair): `q_h(τ) = (1 − τ) q_n + τ q_{n+1} + τ(1 − τ) N(τ; θ)` passes through both ends for any
+`θ`; unknowns `θ` and `q_{n+1}`; equations
+
+    ∂A/∂θ = 0,      p_n + ∂A/∂q_n = 0,
+
+then `p_{n+1} = ∂A/∂q_{n+1}` (the type-1 generating-function form of the discrete
+Euler–Lagrange equations, with `L_d(q_n, q_{n+1}) = A` at the stationary `θ`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array
+from jaxtyping import Array, PyTree
 
 from .ansatz.base import AbstractBasis
 from .terms import AbstractMechanicalTerm
 
-__all__ = ["StepContext", "FreeEndpoints", "action_gradient", "stage_values"]
+__all__ = [
+    "AbstractFormulation",
+    "FreeEndpoints",
+    "InterpolatingEndpoints",
+    "StepContext",
+    "action_gradient",
+    "node_momenta_and_forces",
+    "stage_values",
+]
 
 
 class StepContext(eqx.Module):
-    """Everything the equations of one step depend on (the `args` of the root find)."""
+    """Everything the equations of one step depend on (the `args` of the root find).
+
+    `basis` is the ansatz bound to this step (`AbstractBasis.at_step`).
+    """
 
     term: AbstractMechanicalTerm
-    basis: AbstractBasis = eqx.field(static=True)
+    basis: AbstractBasis
     t: Array
     h: Array
     q0: Array
@@ -50,9 +75,13 @@ class StepContext(eqx.Module):
     weights: Array
 
 
-def stage_values(basis: AbstractBasis, theta: Array, nodes: Array) -> tuple[Array, Array]:
-    """`(q_h(c_j), q_h'(c_j))` at every node, each of shape `(R, D)` (τ-derivative)."""
-    return jax.vmap(basis.value_and_derivative, in_axes=(None, 0))(theta, nodes)
+def stage_values(curve: Callable[[Array], Array], nodes: Array) -> tuple[Array, Array]:
+    """`(q_h(c_j), q_h'(c_j))` of a curve `τ ↦ q_h(τ)` at every node, each `(R, D)`."""
+
+    def one(tau):
+        return jax.jvp(curve, (tau,), (jnp.ones_like(tau),))
+
+    return jax.vmap(one)(nodes)
 
 
 def node_momenta_and_forces(ctx: StepContext, q: Array, dq: Array) -> tuple[Array, Array]:
@@ -62,30 +91,119 @@ def node_momenta_and_forces(ctx: StepContext, q: Array, dq: Array) -> tuple[Arra
     return jax.vmap(ctx.term.momentum_and_force, in_axes=(0, 0, 0, None))(ts, q, v, ctx.args)
 
 
-def action_gradient(ctx: StepContext, theta: Array) -> Array:
-    """`∂A/∂θ` of the discrete action, shape of `θ`."""
-    (q, dq), pullback = jax.vjp(lambda th: stage_values(ctx.basis, th, ctx.nodes), theta)
+def action_gradient(ctx: StepContext, curve: Callable[[PyTree, Array], Array], x: PyTree) -> PyTree:
+    """`∂A/∂x` of the discrete action of the curve `τ ↦ curve(x, τ)`, shaped like `x`."""
+    (q, dq), pullback = jax.vjp(lambda x_: stage_values(lambda s: curve(x_, s), ctx.nodes), x)
     p, f = node_momenta_and_forces(ctx, q, dq)
     b = ctx.weights[:, None]
     (grad,) = pullback((ctx.h * b * f, b * p))
     return grad
 
 
-class FreeEndpoints(eqx.Module):
+class AbstractFormulation(eqx.Module):
+    """How the ansatz becomes the curve of a step, and which equations fix its unknowns.
+
+    The unknowns are a pair `(θ, e)`: the ansatz parameters and one endpoint quantity
+    (`p_{n+1}` for free endpoints, `q_{n+1}` for interpolating ones).
+    """
+
+    def position(self, basis: AbstractBasis, theta, q0: Array, q1: Array, tau) -> Array:
+        """The trial curve `q_h(τ)` given the parameters and the endpoint positions."""
+        raise NotImplementedError
+
+    def dense_position(self, basis: AbstractBasis, theta, q0: Array, q1: Array, tau) -> Array:
+        """The curve as dense output shows it: exactly `q_n` at `τ = 0`, `q_{n+1}` at 1."""
+        return self.position(basis, theta, q0, q1, tau)
+
+    def residual(self, x: tuple[PyTree, Array], ctx: StepContext) -> tuple[PyTree, Array]:
+        raise NotImplementedError
+
+    def end_state(self, x: tuple[PyTree, Array], ctx: StepContext) -> tuple[Array, Array]:
+        """`(q_{n+1}, p_{n+1})` from the converged unknowns."""
+        raise NotImplementedError
+
+    def unknowns(self, theta, q_end: Array, p_end: Array) -> tuple[PyTree, Array]:
+        """The unknowns from parameters and estimates of the end state."""
+        raise NotImplementedError
+
+    def fit_targets(self, labels: Array, q0: Array) -> tuple[Array, bool]:
+        """What the parameter seed fits on `τ_i = i/N`, and whether the ansatz is multiplied
+        by `τ(1 − τ)` there."""
+        raise NotImplementedError
+
+
+class FreeEndpoints(AbstractFormulation):
     """Free-endpoint formulation: unknowns `(θ, p_{n+1})`, continuity as an equation."""
 
-    def residual(self, x: tuple[Array, Array], ctx: StepContext) -> tuple[Array, Array]:
+    def position(self, basis, theta, q0, q1, tau):
+        del q0, q1
+        return basis.evaluate(theta, tau)
+
+    def dense_position(self, basis, theta, q0, q1, tau):
+        # Continuity holds to the Newton tolerance; a linear correction of that size makes
+        # the dense output hit q_n exactly (q_h(1) = q_{n+1} holds by definition).
+        zero = jnp.zeros((), q0.dtype)
+        offset = q0 - basis.evaluate(theta, zero)
+        return basis.evaluate(theta, tau) + (1 - tau) * offset
+
+    def residual(self, x, ctx):
         theta, p1 = x
-        ends = jnp.array([0.0, 1.0], dtype=theta.dtype)
-        (q_ends), pullback = jax.vjp(
+        ends = jnp.array([0.0, 1.0], dtype=q_dtype(ctx))
+        q_ends, pullback = jax.vjp(
             lambda th: jax.vmap(ctx.basis.evaluate, in_axes=(None, 0))(th, ends), theta
         )
         (boundary,) = pullback(jnp.stack([-ctx.p0, p1]))
-        r_theta = boundary - action_gradient(ctx, theta)
-        r_continuity = ctx.q0 - q_ends[0]
-        return r_theta, r_continuity
+        grad = action_gradient(ctx, ctx.basis.evaluate, theta)
+        r_theta = jax.tree_util.tree_map(lambda a, g: a - g, boundary, grad)
+        return r_theta, ctx.q0 - q_ends[0]
 
-    def end_state(self, x: tuple[Array, Array], ctx: StepContext) -> tuple[Array, Array]:
-        """`(q_{n+1}, p_{n+1})` from the converged unknowns."""
+    def end_state(self, x, ctx):
         theta, p1 = x
-        return ctx.basis.evaluate(theta, jnp.ones((), theta.dtype)), p1
+        return ctx.basis.evaluate(theta, jnp.ones((), q_dtype(ctx))), p1
+
+    def unknowns(self, theta, q_end, p_end):
+        del q_end
+        return theta, p_end
+
+    def fit_targets(self, labels, q0):
+        del q0
+        return labels, False
+
+
+class InterpolatingEndpoints(AbstractFormulation):
+    """Interpolating-endpoint formulation: `q_h(τ) = (1−τ) q_n + τ q_{n+1} + τ(1−τ) N(τ; θ)`,
+    unknowns `(θ, q_{n+1})`; the curve is exactly continuous from step to step."""
+
+    def position(self, basis, theta, q0, q1, tau):
+        return (1 - tau) * q0 + tau * q1 + (tau * (1 - tau)) * basis.evaluate(theta, tau)
+
+    def _gradients(self, x, ctx):
+        theta, q1 = x
+
+        def curve(z, tau):
+            th, a, b = z
+            return self.position(ctx.basis, th, a, b, tau)
+
+        return action_gradient(ctx, curve, (theta, ctx.q0, q1))
+
+    def residual(self, x, ctx):
+        g_theta, g_q0, _ = self._gradients(x, ctx)
+        return g_theta, ctx.p0 + g_q0
+
+    def end_state(self, x, ctx):
+        _, _, g_q1 = self._gradients(x, ctx)
+        return x[1], g_q1
+
+    def unknowns(self, theta, q_end, p_end):
+        del p_end
+        return theta, q_end
+
+    def fit_targets(self, labels, q0):
+        n = labels.shape[0] - 1
+        tau = (jnp.arange(n + 1) / n).astype(labels.dtype)[:, None]
+        chord = (1 - tau) * q0 + tau * labels[-1]
+        return labels - chord, True
+
+
+def q_dtype(ctx: StepContext):
+    return ctx.q0.dtype

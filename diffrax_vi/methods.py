@@ -1,30 +1,68 @@
 """The reference's method names as constructors of a configured `NetworkVI`.
 
 A user of NonlinearIntegrators.jl writes `ShallowNet(basis, quadrature; kwargs...)`; here the
-same call returns a `NetworkVI`. The reference's keyword names are accepted (and translated);
-anything else is refused by name.
+same call returns a `NetworkVI`. Each name is a point in the solver's axes:
+
+| name | formulation | ansatz | default seed |
+|---|---|---|---|
+| `ShallowNet` | free endpoints | `ShallowNetBasis` | `OGA1d()` |
+| `ShallowNetAutodiff` | interpolating | `ShallowNetBasis` | `OGA1dNormalized()` |
+| `ShallowNetReversible` | free endpoints | mirrored pairs, own output weights | `OGA1d()` |
+| `ShallowNetAutodiffReversible` | interpolating | mirrored pairs, shared weights | `OGA1d()` |
+| `DenseNet` | free endpoints | `DenseNetBasis` | `LSGD()` |
+| `VISE` | free endpoints | `SymbolicAnsatz` | `InitialWeights(init_w)` |
+| `CGVI` | free endpoints | `LagrangeBasis` | `LeastSquaresFit()` |
+
+The reference's keyword names are accepted (and translated); anything else is refused by name.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
+from .ansatz.base import AbstractBasis
+from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
+from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .nonlinear import RegularisedNewton
-from .oga import OGA
-from .quadrature import AbstractQuadrature
+from .oga import OGA, OGA1d, OGA1dNormalized
+from .oga.symmetry import MirrorPairs, SharedMirrorPairs
+from .quadrature import AbstractQuadrature, GaussLegendre
+from .seeding.fit import AbstractParameterSeed, InitialWeights, LeastSquaresFit
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
+    HermiteExtrapolation,
     IntegratorExtrapolation,
     NoExtrapolation,
     PreviousStep,
 )
 from .solver import NetworkVI
 
-__all__ = ["ShallowNet"]
+__all__ = [
+    "CGVI",
+    "ShallowNet",
+    "ShallowNetAutodiff",
+    "ShallowNetAutodiffReversible",
+    "ShallowNetReversible",
+    "VISE",
+]
 
 _SOLVER_OPTIONS = {"root_finder", "root_find_max_steps", "adjoint"}
+# Accepted for compatibility; dense output is the continuous converged curve and nothing
+# prints inside a compiled solve, so these have no effect.
+_NO_EFFECT = {"record_grid_points", "show_status"}
+_KNOWN = {
+    "extrapolation_substep",
+    "initial_trajectory_method",
+    "initial_guess_method",
+    "bias_interval",
+    "dict_amount",
+    "regularization_factor",
+    "max_iterations",
+    "training_epochs",
+}
 
 
 def _with_substeps(trajectory: AbstractInitialTrajectory, substeps: int):
@@ -34,66 +72,179 @@ def _with_substeps(trajectory: AbstractInitialTrajectory, substeps: int):
         return IntegratorExtrapolation(substeps, trajectory.newton_iterations)
     if isinstance(trajectory, NoExtrapolation):
         return NoExtrapolation(substeps)
+    if isinstance(trajectory, HermiteExtrapolation):
+        first = None if trajectory.first is None else _with_substeps(trajectory.first, substeps)
+        return HermiteExtrapolation(substeps, first)
     return trajectory
 
 
-def ShallowNet(
-    basis: ShallowNetBasis,
+def _build(
+    name: str,
+    basis: AbstractBasis,
     quadrature: AbstractQuadrature,
-    *,
-    extrapolation_substep: int | None = None,
-    initial_trajectory_method: AbstractInitialTrajectory | None = None,
-    initial_guess_method: OGA | None = None,
-    bias_interval: tuple[float, float] = (-math.pi, math.pi),
-    dict_amount: int = 4000,
-    regularization_factor: float | None = None,
-    max_iterations: int | None = None,
-    **options: Any,
+    formulation: AbstractFormulation,
+    default_guess: OGA | AbstractParameterSeed,
+    options: dict[str, Any],
 ) -> NetworkVI:
-    """The reference's `ShallowNet`: a shallow network with free endpoints, seeded by OGA.
-
-    **Arguments:**
-
-    - `basis`: a `ShallowNetBasis(activation, width)`.
-    - `quadrature`: e.g. `GaussLegendre(8)`.
-    - `extrapolation_substep`: sub-steps of the initial trajectory (even; default 10).
-    - `initial_trajectory_method`: `IntegratorExtrapolation()` (default), `NoExtrapolation()`
-      or `PreviousStep()`.
-    - `initial_guess_method`: an OGA configuration (default `OGA1d()`).
-    - `bias_interval`, `dict_amount`: the OGA dictionary (defaults `(-π, π)`, 4000).
-    - `regularization_factor`: if given, use `RegularisedNewton(lam=regularization_factor)`,
-      the reference's Newton with a diagonal shift, instead of the default root finder.
-    - `max_iterations`: iteration cap per step (`root_find_max_steps`).
-    - `**options`: `root_finder`, `root_find_max_steps`, `adjoint` of `NetworkVI`.
-    """
-    if not isinstance(basis, ShallowNetBasis):
-        raise TypeError(f"ShallowNet needs a ShallowNetBasis, got {basis!r}")
-    unknown = set(options) - _SOLVER_OPTIONS
+    if not isinstance(quadrature, AbstractQuadrature):
+        raise TypeError(
+            f"{name} needs a quadrature rule such as GaussLegendre(8), got {quadrature!r}"
+        )
+    unknown = set(options) - _KNOWN - _SOLVER_OPTIONS - _NO_EFFECT
     if unknown:
         raise TypeError(
-            f"ShallowNet got unknown option(s) {sorted(unknown)}; accepted: extrapolation_substep, "
-            "initial_trajectory_method, initial_guess_method, bias_interval, dict_amount, "
-            f"regularization_factor, max_iterations, {', '.join(sorted(_SOLVER_OPTIONS))}"
+            f"{name} got unknown option(s) {sorted(unknown)}; accepted: "
+            f"{', '.join(sorted(_KNOWN | _SOLVER_OPTIONS | _NO_EFFECT))}"
         )
-    kwargs: dict[str, Any] = dict(options)
-    trajectory = initial_trajectory_method or IntegratorExtrapolation()
-    if extrapolation_substep is not None:
-        trajectory = _with_substeps(trajectory, extrapolation_substep)
-    kwargs["initial_trajectory"] = trajectory
-    if initial_guess_method is not None:
-        kwargs["initial_guess"] = initial_guess_method
-    if regularization_factor is not None:
+    kwargs: dict[str, Any] = {k: v for k, v in options.items() if k in _SOLVER_OPTIONS}
+    trajectory = options.get("initial_trajectory_method") or IntegratorExtrapolation()
+    if options.get("extrapolation_substep") is not None:
+        trajectory = _with_substeps(trajectory, options["extrapolation_substep"])
+    guess = options.get("initial_guess_method") or default_guess
+    epochs = options.get("training_epochs")
+    if epochs is not None and hasattr(guess, "epochs"):
+        guess = type(guess)(**{**_fields(guess), "epochs": epochs})
+    if options.get("regularization_factor") is not None:
         if "root_finder" in options:
-            raise TypeError("give either regularization_factor or root_finder, not both")
-        kwargs["root_finder"] = RegularisedNewton(lam=regularization_factor)
-    if max_iterations is not None:
-        kwargs["root_find_max_steps"] = max_iterations
+            raise TypeError(f"{name}: give either regularization_factor or root_finder, not both")
+        kwargs["root_finder"] = RegularisedNewton(lam=options["regularization_factor"])
+    if options.get("max_iterations") is not None:
+        kwargs["root_find_max_steps"] = options["max_iterations"]
     return NetworkVI(
         basis,
         quadrature,
-        bias_interval=tuple(float(b) for b in bias_interval),
-        dict_amount=dict_amount,
+        formulation=formulation,
+        initial_trajectory=trajectory,
+        initial_guess=guess,
+        bias_interval=tuple(float(b) for b in options.get("bias_interval", (-math.pi, math.pi))),
+        dict_amount=options.get("dict_amount", 4000),
         **kwargs,
     )
 
 
+def _fields(module) -> dict[str, Any]:
+    return {f.name: getattr(module, f.name) for f in dataclasses.fields(module) if f.init}
+
+
+def _shallow(name: str, basis, symmetry=None) -> ShallowNetBasis:
+    if not isinstance(basis, ShallowNetBasis):
+        raise TypeError(f"{name} needs a ShallowNetBasis, got {basis!r}")
+    if symmetry is None or isinstance(basis.symmetry, type(symmetry)):
+        return basis
+    if basis.width % 2:
+        raise ValueError(
+            f"{name} places neurons in mirrored pairs, so the width must be even; got "
+            f"width={basis.width}"
+        )
+    return ShallowNetBasis(basis.activation, basis.width, symmetry)
+
+
+_SHARED_DOC = """
+    **Options** (the reference's keywords):
+
+    - `extrapolation_substep`: sub-steps of the initial trajectory (even; default 10).
+    - `initial_trajectory_method`: `IntegratorExtrapolation()` (default),
+      `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`.
+    - `initial_guess_method`: the parameter seed (default as in the table of this module).
+    - `bias_interval`, `dict_amount`: the OGA dictionary (defaults `(-π, π)`, 4000).
+    - `regularization_factor`: use `RegularisedNewton(lam=...)`, the reference's Newton with a
+      diagonal shift, instead of the default Levenberg–Marquardt.
+    - `max_iterations`: iteration cap per step (`root_find_max_steps`).
+    - `training_epochs`: epochs of a training seed (`LSGD`, `TrainingMethod`).
+    - `record_grid_points`, `show_status`: accepted, no effect (dense output is the
+      continuous converged curve).
+    - `root_finder`, `root_find_max_steps`, `adjoint`: passed to `NetworkVI`.
+"""
+
+
+def ShallowNet(basis: ShallowNetBasis, quadrature: AbstractQuadrature, **options: Any) -> NetworkVI:
+    """Shallow network with free endpoints (unknowns `θ`, `p_{n+1}`), seeded by `OGA1d()`."""
+    return _build(
+        "ShallowNet", _shallow("ShallowNet", basis), quadrature, FreeEndpoints(), OGA1d(), options
+    )
+
+
+def ShallowNetAutodiff(
+    basis: ShallowNetBasis, quadrature: AbstractQuadrature, **options: Any
+) -> NetworkVI:
+    """Shallow network with interpolating endpoints: `q_h(τ) = (1−τ) q_n + τ q_{n+1} +
+    τ(1−τ) N(τ)`, unknowns `θ`, `q_{n+1}`; seeded by `OGA1dNormalized()` fitted to the
+    deviation from the chord with `τ(1−τ)`-modulated atoms. Exactly continuous dense output.
+    (The reference's name refers to its ForwardDiff derivatives; here every ansatz is
+    differentiated by JAX or by sympy, whatever the formulation.)"""
+    return _build(
+        "ShallowNetAutodiff",
+        _shallow("ShallowNetAutodiff", basis),
+        quadrature,
+        InterpolatingEndpoints(),
+        OGA1dNormalized(),
+        options,
+    )
+
+
+def ShallowNetReversible(
+    basis: ShallowNetBasis, quadrature: AbstractQuadrature, **options: Any
+) -> NetworkVI:
+    """Free endpoints with mirrored neuron pairs `(w, β)`, `(−w, w + β)`, each neuron with its
+    own output weight (`MirrorPairs`); the equations are the exact gradient of the action on
+    this family, which is closed under reversal of the step. The width must be even."""
+    basis = _shallow("ShallowNetReversible", basis, MirrorPairs())
+    return _build("ShallowNetReversible", basis, quadrature, FreeEndpoints(), OGA1d(), options)
+
+
+def ShallowNetAutodiffReversible(
+    basis: ShallowNetBasis, quadrature: AbstractQuadrature, **options: Any
+) -> NetworkVI:
+    """Interpolating endpoints with mirrored neuron pairs sharing one output weight
+    (`SharedMirrorPairs`), shared in the Newton solve itself (the reference shares it only in
+    the seed). The width must be even."""
+    basis = _shallow("ShallowNetAutodiffReversible", basis, SharedMirrorPairs())
+    return _build(
+        "ShallowNetAutodiffReversible",
+        basis,
+        quadrature,
+        InterpolatingEndpoints(),
+        OGA1d(),
+        options,
+    )
+
+
+def VISE(basis: AbstractBasis, quadrature: AbstractQuadrature, init_w, **options: Any) -> NetworkVI:
+    """Variational integrator with a symbolic ansatz in absolute time (`SymbolicAnsatz`), free
+    endpoints. The weights start from `init_w` on the first step and from the previous
+    step's converged weights afterwards, restarting from `init_w` when they drift more than
+    1 from it (`InitialWeights`); `p_{n+1}` is seeded by the initial trajectory's momentum."""
+    guess = options.pop("initial_guess_method", None) or InitialWeights(_frozen(init_w))
+    return _build("VISE", basis, quadrature, FreeEndpoints(), guess, options)
+
+
+def CGVI(
+    degree: int,
+    quadrature: AbstractQuadrature | None = None,
+    *,
+    points: str = "lobatto",
+    **options: Any,
+) -> NetworkVI:
+    """Classical continuous-Galerkin variational integrator: a polynomial of `degree` in
+    Lagrange form (`LagrangeBasis`), free endpoints, Gauss–Legendre with `degree + 1` nodes
+    by default (order `2·degree`), seeded by an exact least-squares fit to the trajectory."""
+    basis = LagrangeBasis(degree, points)
+    quadrature = quadrature if quadrature is not None else GaussLegendre(degree + 1)
+    return _build("CGVI", basis, quadrature, FreeEndpoints(), LeastSquaresFit(), options)
+
+
+def _frozen(values):
+    """Nested sequences of numbers as nested tuples of floats (hashable static data)."""
+    if isinstance(values, int | float):
+        return float(values)
+    try:
+        return tuple(_frozen(v) for v in values)
+    except TypeError:
+        return float(values)
+
+
+for _method in (ShallowNet, ShallowNetAutodiff, ShallowNetReversible, ShallowNetAutodiffReversible):
+    _method.__doc__ = (_method.__doc__ or "") + "\n" + _SHARED_DOC
+VISE.__doc__ = (VISE.__doc__ or "") + "\n" + _SHARED_DOC
+CGVI.__doc__ = (CGVI.__doc__ or "") + "\n" + _SHARED_DOC
+del _method

@@ -12,19 +12,27 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array
+from jaxtyping import Array, PyTree
 
 from .ansatz.base import AbstractBasis
-from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
+from .ansatz.shallow import ShallowNetBasis
+from .formulation import (
+    AbstractFormulation,
+    FreeEndpoints,
+    StepContext,
+    node_momenta_and_forces,
+    stage_values,
+)
 from .interpolation import NetworkInterpolation
 from .nonlinear import LevenbergMarquardt
 from .oga import OGA, OGA1d
 from .quadrature import AbstractQuadrature, GaussLegendre
-from .seeding.fit import fit_network
+from .seeding.fit import AbstractParameterSeed, fit_problem, seed_parameters
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
     IntegratorExtrapolation,
     PreviousStep,
+    StepHistory,
 )
 from .terms import AbstractMechanicalTerm, unwrap_term
 
@@ -37,6 +45,7 @@ class NetworkVIState(eqx.Module):
     - `theta`: the last converged parameters (or, before the first step, the seed of the first
       step); `fresh` says which.
     - `h_prev`: the length of the step `theta` belongs to.
+    - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
     - `iterations`: total nonlinear iterations over all accepted steps.
     - `last_iterations`, `max_iterations`: of the last step, and the most of any step.
     - `steps`: number of steps taken.
@@ -46,9 +55,10 @@ class NetworkVIState(eqx.Module):
       seeded by a trajectory fit).
     """
 
-    theta: Array
+    theta: PyTree
     fresh: Array
     h_prev: Array
+    history: StepHistory
     iterations: Array
     last_iterations: Array
     max_iterations: Array
@@ -58,27 +68,34 @@ class NetworkVIState(eqx.Module):
 
 
 class NetworkVI(diffrax.AbstractImplicitSolver):
-    """Variational integrator whose trial trajectory on each step is a neural network.
+    """Variational integrator whose trial trajectory on each step is a neural network (or
+    any other ansatz).
 
-    Per step `[t_n, t_n + h]` the trajectory of each coordinate is the ansatz `q_h(τ; θ)`
-    (`τ ∈ [0, 1]`); the parameters `θ` and the new momentum `p_{n+1}` solve the discrete
-    variational equations of the quadrature-approximated action (free endpoints: stationarity
-    with boundary momenta, plus continuity `q_h(0) = q_n`), then `q_{n+1} = q_h(1)`. The state
-    is `y = (q, p)`, the term a `LagrangianTerm` or `IODETerm`, and the working precision is
-    the dtype of `y0`.
+    Per step `[t_n, t_n + h]` the trajectory of each coordinate is built from the ansatz
+    `N(τ; θ)` (`τ ∈ [0, 1]`) by the `formulation`, and its unknowns solve the discrete
+    variational equations of the quadrature-approximated action: with free endpoints (the
+    default) the unknowns are `θ` and `p_{n+1}`, with stationarity plus continuity
+    `q_h(0) = q_n` as equations, then `q_{n+1} = q_h(1)`; with interpolating endpoints the
+    curve passes through `q_n` and `q_{n+1}` by construction and the unknowns are `θ` and
+    `q_{n+1}`. The state is `y = (q, p)`, the term a `LagrangianTerm` or `IODETerm`, and the
+    working precision is the dtype of `y0`.
 
     The Newton solve of each step starts from a seed: a cheap trajectory estimate
-    (`initial_trajectory`) fitted by the Orthogonal Greedy Algorithm (`initial_guess`), or the
-    previous step's network continued (`PreviousStep`). A step whose solve does not converge
-    ends the solve with a non-successful `diffrax.RESULTS`.
+    (`initial_trajectory`) fitted by `initial_guess` (the Orthogonal Greedy Algorithm for
+    shallow networks), or the previous step's curve continued (`PreviousStep`). A step whose
+    solve does not converge ends the solve with a non-successful `diffrax.RESULTS`.
 
     **Arguments:**
 
-    - `basis`: the ansatz, e.g. `ShallowNetBasis(diffrax_vi.tanh, 10)`.
+    - `basis`: the ansatz, e.g. `ShallowNetBasis(diffrax_vi.tanh, 10)`, `DenseNetBasis`,
+      `SymbolicAnsatz`, `LagrangeBasis`.
     - `quadrature`: rule on `[0, 1]` for the discrete action. Default `GaussLegendre(8)`.
+    - `formulation`: `FreeEndpoints()` (default) or `InterpolatingEndpoints()`.
     - `initial_trajectory`: `IntegratorExtrapolation()` (default, the reference's),
-      `NoExtrapolation()` or `PreviousStep()`.
-    - `initial_guess`: the OGA configuration fitting the seed network. Default `OGA1d()`.
+      `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`.
+    - `initial_guess`: how the seed parameters are fitted to the trajectory: an OGA
+      configuration (default `OGA1d()`; shallow networks), `LSGD()`, `TrainingMethod()`,
+      `LeastSquaresFit()` (linear ansätze), `InitialWeights(...)`.
     - `bias_interval`: bias range of the OGA dictionary. Default `(-π, π)` (the reference's).
     - `dict_amount`: number of bias intervals of the OGA dictionary (`2(dict_amount + 1)`
       atoms). Default 4000, the reference benchmark's value (its constructor default is 50000,
@@ -93,7 +110,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     basis: AbstractBasis
     quadrature: AbstractQuadrature = GaussLegendre(8)
     initial_trajectory: AbstractInitialTrajectory = IntegratorExtrapolation()
-    initial_guess: OGA = OGA1d()
+    initial_guess: OGA | AbstractParameterSeed = OGA1d()
     bias_interval: tuple[float, float] = eqx.field(static=True, default=(-math.pi, math.pi))
     dict_amount: int = eqx.field(static=True, default=4000)
     root_finder: optx.AbstractRootFinder = LevenbergMarquardt()
@@ -101,7 +118,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     adjoint: optx.AbstractAdjoint = optx.ImplicitAdjoint(
         linear_solver=lx.AutoLinearSolver(well_posed=False)
     )
-    formulation: FreeEndpoints = FreeEndpoints()
+    formulation: AbstractFormulation = FreeEndpoints()
 
     term_structure: ClassVar = AbstractMechanicalTerm
 
@@ -112,6 +129,39 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             raise TypeError(
                 f"quadrature must be a rule such as GaussLegendre(8), got {self.quadrature!r}"
             )
+        if not isinstance(self.formulation, AbstractFormulation):
+            raise TypeError(
+                "formulation must be FreeEndpoints() or InterpolatingEndpoints(), got "
+                f"{self.formulation!r}"
+            )
+        if not isinstance(self.initial_trajectory, AbstractInitialTrajectory):
+            raise TypeError(
+                "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
+                f"NoExtrapolation() or PreviousStep(); got {self.initial_trajectory!r}"
+            )
+        if isinstance(self.initial_guess, OGA):
+            if not isinstance(self.basis, ShallowNetBasis):
+                raise ValueError(
+                    f"an OGA seed fits shallow networks; {self.basis!r} needs another "
+                    "initial_guess (e.g. LSGD() for DenseNetBasis, LeastSquaresFit() for "
+                    "LagrangeBasis)"
+                )
+        elif isinstance(self.initial_guess, AbstractParameterSeed):
+            self.initial_guess.check(self.basis)
+        else:
+            raise TypeError(
+                "initial_guess must be an OGA configuration (e.g. OGA1d()) or a parameter "
+                f"seed (LSGD(), TrainingMethod(), LeastSquaresFit(), ...); got "
+                f"{self.initial_guess!r}"
+            )
+        if isinstance(self.initial_trajectory, PreviousStep):
+            if not isinstance(self.formulation, FreeEndpoints) or not self.basis.can_advance:
+                raise ValueError(
+                    "PreviousStep continues the previous step's curve past its end, which "
+                    f"needs FreeEndpoints() and an ansatz that can be continued; {self.basis!r} "
+                    f"with {type(self.formulation).__name__}() cannot. Use "
+                    "IntegratorExtrapolation() or HermiteExtrapolation()."
+                )
         lo, hi = self.bias_interval
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ValueError(
@@ -127,7 +177,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     @property
     def interpolation_cls(self):  # type: ignore[override]
         nodes = tuple(float(c) for c in self.quadrature.nodes_weights_np()[0])
-        return _interpolation_factory(self.basis, nodes)
+        return _interpolation_factory(self.basis, self.formulation, nodes)
 
     def order(self, terms) -> int | None:
         return None
@@ -141,22 +191,33 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         nodes, weights = self.quadrature.nodes_weights(dtype)
         t = jnp.asarray(direction * t0, dtype)
         h = jnp.asarray(direction * (t1 - t0), dtype)
-        return StepContext(term, self.basis, t, h, q0, p0, args, nodes, weights)
+        basis = self.basis.at_step(t, h)
+        return StepContext(term, basis, t, h, q0, p0, args, nodes, weights)
 
-    def _cold_seed(self, ctx: StepContext) -> tuple[Array, Array]:
+    def _cold_seed(self, ctx: StepContext, state: NetworkVIState | None):
+        history = None if state is None else state.history
         labels, p_end = self.initial_trajectory.labels(
-            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args
+            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
         )
-        theta = fit_network(
-            self.basis, self.initial_guess, labels, self.bias_interval, self.dict_amount
+        targets, modulated = self.formulation.fit_targets(labels, ctx.q0)
+        if state is None:
+            previous, fresh = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype), jnp.array(True)
+        else:
+            previous, fresh = state.theta, state.fresh
+        problem = fit_problem(targets, modulated, previous, fresh)
+        theta = seed_parameters(
+            self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
         )
-        return jax.lax.stop_gradient((theta, p_end))
+        x = self.formulation.unknowns(theta, labels[-1], p_end)
+        return jax.lax.stop_gradient(x)
 
-    def _warm_seed(self, ctx: StepContext, state: NetworkVIState) -> tuple[Array, Array]:
+    def _warm_seed(self, ctx: StepContext, state: NetworkVIState):
         ratio = ctx.h / state.h_prev
-        advanced = self.basis.advance(state.theta, ratio)
-        theta = jnp.where(state.fresh, state.theta, advanced)
-        q1, dq1 = self.basis.value_and_derivative(theta, jnp.ones((), theta.dtype))
+        advanced = ctx.basis.advance(state.theta, ratio)
+        theta = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(state.fresh, a, b), state.theta, advanced
+        )
+        q1, dq1 = ctx.basis.value_and_derivative(theta, jnp.ones((), ctx.q0.dtype))
         p1 = ctx.term.momentum(ctx.t + ctx.h, q1, dq1 / ctx.h, ctx.args)
         return jax.lax.stop_gradient((theta, p1))
 
@@ -164,14 +225,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
         ctx = self._context(terms, t0, t1, y0, args)
         if isinstance(self.initial_trajectory, PreviousStep):
-            theta, _ = self._cold_seed(ctx)
+            theta, _ = self._cold_seed(ctx, None)
         else:
-            theta = jnp.zeros((self.basis.num_params(),) + ctx.q0.shape, ctx.q0.dtype)
+            theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
         zero = jnp.array(0, jnp.int32)
         return NetworkVIState(
             theta=theta,
             fresh=jnp.array(True),
             h_prev=ctx.h,
+            history=StepHistory.empty(ctx.q0, ctx.t),
             iterations=zero,
             last_iterations=zero,
             max_iterations=zero,
@@ -182,18 +244,21 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
         ctx = self._context(terms, t0, t1, y0, args)
+        state = solver_state
+        if made_jump is not False:
+            state = eqx.tree_at(lambda s: s.history.valid, state, state.history.valid & ~made_jump)
         warm_used = jnp.array(False)
         if isinstance(self.initial_trajectory, PreviousStep):
-            warm = self._warm_seed(ctx, solver_state)
+            warm = self._warm_seed(ctx, state)
             residual = jax.tree_util.tree_leaves(self.formulation.residual(warm, ctx))
             fmax = jnp.max(jnp.stack([jnp.max(jnp.abs(r)) for r in residual]))
             tolerance = self.initial_trajectory.accept_tolerance(ctx.q0.dtype)
-            warm_used = solver_state.fresh | (fmax <= tolerance * _residual_scale(ctx))
+            warm_used = state.fresh | (fmax <= tolerance * _residual_scale(ctx))
             if made_jump is not False:
                 warm_used = warm_used & ~made_jump
-            seed = jax.lax.cond(warm_used, lambda: warm, lambda: self._cold_seed(ctx))
+            seed = jax.lax.cond(warm_used, lambda: warm, lambda: self._cold_seed(ctx, state))
         else:
-            seed = self._cold_seed(ctx)
+            seed = self._cold_seed(ctx, state)
 
         sol = optx.root_find(
             lambda x, c: self.formulation.residual(x, c),
@@ -219,18 +284,29 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             finite, result, diffrax.RESULTS.promote(optx.RESULTS.nonlinear_divergence)
         )
 
-        q_nodes, dq_nodes = stage_values(self.basis, theta, ctx.nodes)
+        def curve(tau):
+            return self.formulation.position(ctx.basis, theta, ctx.q0, q1, tau)
+
+        q_nodes, dq_nodes = stage_values(curve, ctx.nodes)
         p_nodes, _ = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
         dense_info = dict(
-            theta=theta, q0=ctx.q0, q1=q1, p0=ctx.p0, p1=p1, p_nodes=p_nodes.astype(ctx.p0.dtype)
+            theta=theta,
+            q0=ctx.q0,
+            q1=q1,
+            p0=ctx.p0,
+            p1=p1,
+            p_nodes=p_nodes.astype(ctx.p0.dtype),
+            t_step=ctx.t,
+            h_step=ctx.h,
         )
+        history = _history(ctx, curve, q1)
 
         n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
-        state = solver_state
         new_state = NetworkVIState(
             theta=theta,
             fresh=jnp.array(False),
             h_prev=ctx.h,
+            history=history,
             iterations=state.iterations + n,
             last_iterations=n,
             max_iterations=jnp.maximum(state.max_iterations, n),
@@ -244,9 +320,28 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return terms.vf(t0, y0, args)
 
 
+def _history(ctx: StepContext, curve, q1: Array) -> StepHistory:
+    """The ends of the converged step, for the next step's Hermite extrapolation."""
+    dtype = ctx.q0.dtype
+    ends = jnp.array([0.0, 1.0], dtype)
+    _, dq = stage_values(curve, ends)
+    v = dq / ctx.h
+    ts = ctx.t + ends * ctx.h
+    qs = jnp.stack([ctx.q0, q1])
+    _, f = jax.vmap(ctx.term.momentum_and_force, in_axes=(0, 0, 0, None))(ts, qs, v, ctx.args)
+    v, f = v.astype(dtype), f.astype(dtype)
+    return jax.lax.stop_gradient(
+        StepHistory(jnp.array(True), ctx.t, ctx.h, ctx.q0, v[0], ctx.p0, f[0], v[1], f[1])
+    )
+
+
 @functools.lru_cache(maxsize=64)
-def _interpolation_factory(basis: AbstractBasis, nodes: tuple[float, ...]):
-    return functools.partial(NetworkInterpolation, basis=basis, nodes=nodes)
+def _interpolation_factory(
+    basis: AbstractBasis, formulation: AbstractFormulation, nodes: tuple[float, ...]
+):
+    return functools.partial(
+        NetworkInterpolation, basis=basis, formulation=formulation, nodes=nodes
+    )
 
 
 def _residual_scale(ctx: StepContext) -> Array:

@@ -12,7 +12,13 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.activations import ReLUk, activation_name, check_activation
-from diffrax_vi.formulation import FreeEndpoints, StepContext, action_gradient, stage_values
+from diffrax_vi.formulation import (
+    FreeEndpoints,
+    InterpolatingEndpoints,
+    StepContext,
+    action_gradient,
+    stage_values,
+)
 from diffrax_vi.interpolation import lagrange_weights
 from diffrax_vi.nonlinear import LevenbergMarquardt, RegularisedNewton, default_tolerances
 from diffrax_vi.quadrature import GaussLegendre, Simpson
@@ -486,9 +492,11 @@ def _context(quad_nodes=5):
     )
 
 
-def _discrete_action(ctx, theta):
-    def curve(tau):
-        return ctx.basis.evaluate(theta, tau)
+def _discrete_action(ctx, theta, curve=None):
+    if curve is None:
+
+        def curve(tau):
+            return ctx.basis.evaluate(theta, tau)
 
     total = jnp.zeros((), F64)
     for c, b in zip(ctx.nodes, ctx.weights, strict=True):
@@ -501,7 +509,7 @@ def _discrete_action(ctx, theta):
 def test_stage_values_match_basis():
     ctx = _context()
     theta = _theta(4, 2, seed=3)
-    q, dq = stage_values(ctx.basis, theta, ctx.nodes)
+    q, dq = stage_values(lambda s: ctx.basis.evaluate(theta, s), ctx.nodes)
     assert q.shape == dq.shape == (5, 2)
     for j, c in enumerate(ctx.nodes):
         np.testing.assert_allclose(q[j], ctx.basis.evaluate(theta, c), rtol=1e-15)
@@ -515,7 +523,7 @@ def test_action_gradient_is_grad_of_discrete_action(seed):
     ctx = _context()
     theta = _theta(4, 2, seed=seed)
     expected = jax.jit(jax.grad(lambda th: _discrete_action(ctx, th)))(theta)
-    got = jax.jit(lambda th: action_gradient(ctx, th))(theta)
+    got = jax.jit(lambda th: action_gradient(ctx, ctx.basis.evaluate, th))(theta)
     assert got.shape == theta.shape
     np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-12, atol=1e-13)
     assert float(jnp.max(jnp.abs(expected))) > 1e-2  # not a trivially zero comparison
@@ -542,6 +550,27 @@ def test_free_endpoints_residual():
     q1, p_end = FreeEndpoints().end_state((theta, p1), ctx)
     np.testing.assert_allclose(q1, ctx.basis.evaluate(theta, one), rtol=1e-15)
     np.testing.assert_array_equal(p_end, p1)
+
+
+def test_interpolating_endpoints_residual_and_end_momentum():
+    ctx = _context()
+    theta = _theta(4, 2, seed=6)
+    q1 = jnp.asarray([0.45, -0.1], F64)
+    form = InterpolatingEndpoints()
+
+    def action(th, a, b):
+        return _discrete_action(ctx, th, lambda tau: form.position(ctx.basis, th, a, b, tau))
+
+    g_theta, g_q0, g_q1 = jax.jit(jax.grad(action, argnums=(0, 1, 2)))(theta, ctx.q0, q1)
+    r_theta, r_q = jax.jit(lambda x: form.residual(x, ctx))((theta, q1))
+    np.testing.assert_allclose(np.asarray(r_theta), np.asarray(g_theta), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(r_q), np.asarray(ctx.p0 + g_q0), rtol=1e-12, atol=1e-13)
+    q_end, p_end = form.end_state((theta, q1), ctx)
+    np.testing.assert_array_equal(q_end, q1)
+    np.testing.assert_allclose(np.asarray(p_end), np.asarray(g_q1), rtol=1e-12, atol=1e-13)
+    # The curve passes through both ends for any parameters.
+    np.testing.assert_allclose(form.position(ctx.basis, theta, ctx.q0, q1, 0.0), ctx.q0)
+    np.testing.assert_allclose(form.position(ctx.basis, theta, ctx.q0, q1, 1.0), q1)
 
 
 # -- 7. implicit midpoint seed ---------------------------------------------------------------

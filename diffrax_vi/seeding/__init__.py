@@ -1,17 +1,33 @@
 """Per-step seeds of the Newton solve: initial trajectories and parameter fits."""
 
+from .fit import (
+    AbstractParameterSeed,
+    FitProblem,
+    InitialWeights,
+    LeastSquaresFit,
+    fit_network,
+)
 from .trajectories import (
     AbstractInitialTrajectory,
+    HermiteExtrapolation,
     IntegratorExtrapolation,
     NoExtrapolation,
     PreviousStep,
+    StepHistory,
     implicit_midpoint,
 )
 
 __all__ = [
     "AbstractInitialTrajectory",
+    "AbstractParameterSeed",
+    "FitProblem",
+    "HermiteExtrapolation",
+    "InitialWeights",
     "IntegratorExtrapolation",
+    "LeastSquaresFit",
     "NoExtrapolation",
     "PreviousStep",
+    "StepHistory",
+    "fit_network",
     "implicit_midpoint",
 ]

@@ -1,61 +1,161 @@
-"""Fit the seed network to an initial trajectory with the Orthogonal Greedy Algorithm."""
+"""Parameter seeds: fit the ansatz to an initial trajectory before the Newton solve.
+
+The trajectory is given as targets on the uniform grid `τ_i = i/N` (`N` even), and every fit
+works in the composite-Simpson weighted norm on that grid. With `modulated`, the ansatz is
+multiplied by `τ(1 − τ)` there (the network term of the interpolating formulation; the targets
+are then the deviation from the chord).
+"""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jaxtyping import Array, PyTree
 
 from ..ansatz.base import AbstractBasis
 from ..ansatz.shallow import ShallowNetBasis
-from ..oga import OGA, AbstractSymmetry, oga_fit
+from ..linalg import solve
+from ..oga import OGA, oga_fit
 from ..quadrature import Simpson
 
-__all__ = ["fit_network"]
+__all__ = [
+    "AbstractParameterSeed",
+    "FitProblem",
+    "InitialWeights",
+    "LeastSquaresFit",
+    "fit_network",
+    "fit_problem",
+]
+
+
+class FitProblem(NamedTuple):
+    """A seed fit: targets `(N + 1, D)` on `τ_i = i/N` with Simpson weights, optionally
+    modulated by `τ(1 − τ)`; plus the previous step's converged parameters for seeds that
+    warm-start (`fresh` is true before the first step)."""
+
+    nodes: np.ndarray
+    weights: np.ndarray
+    modulation: np.ndarray | None
+    targets: Array
+    previous: PyTree
+    fresh: Array
+
+
+def fit_problem(targets: Array, modulated: bool, previous: PyTree, fresh: Array) -> FitProblem:
+    """The `FitProblem` of `targets` on the Simpson grid of their length."""
+    n = targets.shape[0] - 1
+    # NumPy arrays stay compile-time constants, so the OGA builds its dictionary once.
+    np_dtype = np.dtype(jnp.dtype(targets.dtype))
+    t, w = Simpson(n).nodes_weights_np()
+    modulation = (t * (1 - t)).astype(np_dtype) if modulated else None
+    return FitProblem(t.astype(np_dtype), w.astype(np_dtype), modulation, targets, previous, fresh)
+
+
+class AbstractParameterSeed(eqx.Module):
+    """A way to choose the ansatz parameters that start the Newton solve of a step."""
+
+    def fit(self, basis: AbstractBasis, problem: FitProblem) -> PyTree:
+        """Parameters of `basis` for the trajectory in `problem`."""
+        raise NotImplementedError
+
+    def check(self, basis: AbstractBasis) -> None:
+        """Raise a clear error if this seed cannot fit `basis`."""
 
 
 def fit_network(
-    basis: AbstractBasis,
+    basis: ShallowNetBasis,
     config: OGA,
-    labels: Array,
+    problem: FitProblem,
     bias_interval: tuple[float, float],
     dict_amount: int,
-    *,
-    modulated: bool = False,
-    symmetry: AbstractSymmetry | None = None,
 ) -> Array:
-    """Parameters `θ` (shape `(num_params, D)`) of `basis` fitted to `labels` `(N + 1, D)`.
-
-    The labels sit on `τ_i = i/N`; the fit is in the composite-Simpson weighted norm, one
-    greedy fit per coordinate. With `modulated`, every atom is multiplied by `τ(1 − τ)` (for
-    an ansatz whose network term vanishes at both ends; the labels are then the deviation
-    from the chord); `symmetry` places mirrored neuron pairs (`MirrorPairs`,
-    `SharedMirrorPairs`).
-    """
+    """OGA seed: parameters `(num_params, D)` of a shallow network, one greedy fit per
+    coordinate, placed with the basis's own mirror symmetry."""
     if not isinstance(basis, ShallowNetBasis):
         raise TypeError(f"the OGA seed fits shallow networks; got {basis!r}")
-    dtype = labels.dtype
-    n = labels.shape[0] - 1
-    # NumPy inputs stay constants under jit, so the OGA builds its dictionary once.
-    np_dtype = np.dtype(jnp.dtype(dtype))
-    t, w = Simpson(n).nodes_weights_np()
-    nodes, weights = t.astype(np_dtype), w.astype(np_dtype)
-    modulation = (t * (1 - t)).astype(np_dtype) if modulated else None
 
     def one(y):
         res = oga_fit(
             config,
             basis.activation,
-            nodes,
-            weights,
+            problem.nodes,
+            problem.weights,
             y,
             basis.width,
             bias_interval=bias_interval,
             dict_amount=dict_amount,
-            modulation=modulation,
-            symmetry=symmetry,
+            modulation=problem.modulation,
+            symmetry=basis.symmetry,
         )
-        return jnp.concatenate([res.c, res.W, res.b])
+        return basis.from_neurons(res.W, res.b, res.c)
 
-    return jax.vmap(one, in_axes=1, out_axes=1)(labels)
+    return jax.vmap(one, in_axes=1, out_axes=1)(problem.targets)
+
+
+class LeastSquaresFit(AbstractParameterSeed):
+    """Weighted least-squares fit of an ansatz that is linear in its parameters (the
+    polynomial cGVI basis): exact in one solve, no greedy selection."""
+
+    def check(self, basis):
+        if not basis.linear:
+            raise ValueError(f"LeastSquaresFit needs an ansatz linear in its parameters; {basis!r}")
+
+    def fit(self, basis, problem):
+        dtype = problem.targets.dtype
+        nodes = jnp.asarray(problem.nodes, dtype)
+        zeros = jnp.zeros((basis.num_params(), 1), dtype)
+        # Design matrix Φ[i, k] = ∂q_h(τ_i)/∂θ_k of one coordinate.
+        design = jax.vmap(lambda t: jax.jacfwd(lambda th: basis.evaluate(th, t)[0])(zeros))(nodes)
+        design = design[:, :, 0]
+        if problem.modulation is not None:
+            design = design * jnp.asarray(problem.modulation, dtype)[:, None]
+        sw = jnp.sqrt(jnp.asarray(problem.weights, dtype))[:, None]
+        a, y = design * sw, problem.targets * sw
+        # Normal equations of a small, well-conditioned basis (Lagrange polynomials).
+        return solve(a.T @ a, a.T @ y)
+
+
+class InitialWeights(AbstractParameterSeed):
+    """Fixed starting parameters, then the previous step's converged ones (VISE's seed).
+
+    The first step starts from `init`; each later step from the previous converged
+    parameters, unless they have drifted more than `restart_radius` (Euclidean norm over all
+    parameters) from `init`, in which case the step restarts from `init` (the reference's
+    rule, with its radius 1 as default). The trajectory labels are not used.
+
+    **Arguments:**
+
+    - `init`: the parameters, in the layout of the ansatz (for `SymbolicAnsatz`, one weight
+      sequence per coordinate).
+    - `restart_radius`: see above; `None` never restarts.
+    """
+
+    init: PyTree = eqx.field(static=True)
+    restart_radius: float | None = eqx.field(static=True, default=1.0)
+
+    def fit(self, basis, problem):
+        dtype = problem.targets.dtype
+        init = basis.params_from(self.init, dtype)
+        previous = problem.previous
+        if self.restart_radius is None:
+            drift_ok = jnp.array(True)
+        else:
+            leaves = jax.tree_util.tree_leaves(
+                jax.tree_util.tree_map(lambda a, b: jnp.sum((a - b) ** 2), previous, init)
+            )
+            drift_ok = jnp.sqrt(sum(leaves)) <= self.restart_radius
+        use_init = problem.fresh | ~drift_ok
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(use_init, a, b), init, previous)
+
+
+def seed_parameters(
+    seed, basis: AbstractBasis, problem: FitProblem, bias_interval, dict_amount
+) -> PyTree:
+    """Dispatch a seed (an `OGA` configuration or an `AbstractParameterSeed`)."""
+    if isinstance(seed, OGA):
+        return fit_network(basis, seed, problem, bias_interval, dict_amount)
+    return seed.fit(basis, problem)

@@ -18,11 +18,36 @@ from ..terms import AbstractMechanicalTerm
 
 __all__ = [
     "AbstractInitialTrajectory",
+    "HermiteExtrapolation",
+    "StepHistory",
     "IntegratorExtrapolation",
     "NoExtrapolation",
     "PreviousStep",
     "implicit_midpoint",
 ]
+
+
+class StepHistory(eqx.Module):
+    """The previous step, as the solver carries it: its start time `t`, length `h`, and
+    position, velocity, momentum and force at its start (`q0, v0, p0, f0`) and velocity and
+    force at its end (`v1, f1`; its end position and momentum are the current state).
+    Velocities are those of the converged curve. `valid` is false before the first step and
+    after a jump."""
+
+    valid: Array
+    t: Array
+    h: Array
+    q0: Array
+    v0: Array
+    p0: Array
+    f0: Array
+    v1: Array
+    f1: Array
+
+    @classmethod
+    def empty(cls, q: Array, t: Array) -> StepHistory:
+        z = jnp.zeros_like(q)
+        return cls(jnp.array(False), t, jnp.ones_like(t), z, z, z, z, z, z)
 
 
 class AbstractInitialTrajectory(eqx.Module):
@@ -40,7 +65,14 @@ class AbstractInitialTrajectory(eqx.Module):
             )
 
     def labels(
-        self, term: AbstractMechanicalTerm, t, h, q0: Array, p0: Array, args
+        self,
+        term: AbstractMechanicalTerm,
+        t,
+        h,
+        q0: Array,
+        p0: Array,
+        args,
+        history: StepHistory | None = None,
     ) -> tuple[Array, Array]:
         """Positions `(N + 1, D)` on `τ_i = i/N` and an estimate of `p_{n+1}`."""
         raise NotImplementedError
@@ -99,7 +131,8 @@ class IntegratorExtrapolation(AbstractInitialTrajectory):
     substeps: int = eqx.field(static=True, default=10)
     newton_iterations: int = eqx.field(static=True, default=4)
 
-    def labels(self, term, t, h, q0, p0, args):
+    def labels(self, term, t, h, q0, p0, args, history=None):
+        del history
         return implicit_midpoint(term, t, h, q0, p0, args, self.substeps, self.newton_iterations)
 
 
@@ -113,8 +146,8 @@ class NoExtrapolation(AbstractInitialTrajectory):
 
     substeps: int = eqx.field(static=True, default=10)
 
-    def labels(self, term, t, h, q0, p0, args):
-        del term, t, h, args
+    def labels(self, term, t, h, q0, p0, args, history=None):
+        del term, t, h, args, history
         return jnp.broadcast_to(q0, (self.substeps + 1,) + q0.shape), p0
 
 
@@ -153,5 +186,72 @@ class PreviousStep(AbstractInitialTrajectory):
             return self.tolerance
         return float(jnp.finfo(dtype).eps) ** 0.5
 
-    def labels(self, term, t, h, q0, p0, args):
-        return self.first.labels(term, t, h, q0, p0, args)
+    def labels(self, term, t, h, q0, p0, args, history=None):
+        return self.first.labels(term, t, h, q0, p0, args, history)
+
+
+def hermite_cubic(y0: Array, dy0: Array, y1: Array, dy1: Array, h_prev, s: Array) -> Array:
+    """The cubic through `(0, y0)` and `(1, y1)` with slopes `h_prev·dy0`, `h_prev·dy1` (time
+    derivatives rescaled to the normalised time `σ`), evaluated at `σ = s` (shape `(M,)`);
+    returns `(M, D)`."""
+    a1 = h_prev * dy0
+    a2 = 3 * (y1 - y0) - h_prev * (2 * dy0 + dy1)
+    a3 = 2 * (y0 - y1) + h_prev * (dy0 + dy1)
+    s = s[:, None]
+    return y0 + s * (a1 + s * (a2 + s * a3))
+
+
+class HermiteExtrapolation(AbstractInitialTrajectory):
+    """Extrapolate the previous step: cubic Hermite interpolation in time.
+
+    Positions come from the cubic through `(t_{n−1}, q_{n−1}, q̇_{n−1})` and
+    `(t_n, q_n, q̇_n)` (velocities of the previous step's converged curve at its two ends),
+    evaluated at `t_n + τ_i h`; the end momentum likewise from `(p, ṗ = f)` at the same two
+    times, evaluated at `t_n + h`. No sub-integration, so it is the cheapest trajectory;
+    it is accurate when the step size is small against the time scale of the motion. The first
+    step (and the step after a jump) has no history and uses `first`.
+
+    **Arguments:**
+
+    - `substeps`: size `N` of the label grid (even). Default 10.
+    - `first`: the strategy without history. Default `IntegratorExtrapolation(substeps)`.
+    """
+
+    substeps: int = eqx.field(static=True, default=10)
+    first: AbstractInitialTrajectory | None = None
+
+    def __check_init__(self):
+        super().__check_init__()
+        if isinstance(self.first, HermiteExtrapolation | PreviousStep):
+            raise ValueError("HermiteExtrapolation(first=...) needs a strategy without history")
+
+    def _first(self) -> AbstractInitialTrajectory:
+        return self.first if self.first is not None else IntegratorExtrapolation(self.substeps)
+
+    def labels(self, term, t, h, q0, p0, args, history=None):
+        first = self._first()
+        if history is None:
+            return first.labels(term, t, h, q0, p0, args)
+        dtype = q0.dtype
+        ratio = (h / history.h).astype(dtype)
+        grid = (jnp.arange(self.substeps + 1) / self.substeps).astype(dtype)
+
+        def extrapolate():
+            v1, f1 = history.v1, history.f1
+            qs = hermite_cubic(history.q0, history.v0, q0, v1, history.h, 1 + ratio * grid)
+            s_end = jnp.reshape(1 + ratio, (1,))
+            p_end = hermite_cubic(history.p0, history.f0, p0, f1, history.h, s_end)[0]
+            # Label 0 is q_n itself (the cubic reproduces it up to rounding).
+            qs = qs.at[0].set(q0)
+            return qs.astype(dtype), p_end.astype(p0.dtype)
+
+        def fallback():
+            qs, p_end = first.labels(term, t, h, q0, p0, args)
+            if qs.shape[0] != self.substeps + 1:
+                raise ValueError(
+                    f"HermiteExtrapolation(substeps={self.substeps}) needs a first strategy "
+                    f"with the same substeps; got {first!r}"
+                )
+            return qs, p_end
+
+        return jax.lax.cond(history.valid, extrapolate, fallback)
