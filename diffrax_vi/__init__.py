@@ -3,9 +3,9 @@
 float64 needs `jax.config.update("jax_enable_x64", True)`; the library never flips it.
 """
 
-from . import oga, problems
+from . import oga, problems, symbolic
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
-from .ansatz import AbstractBasis, LagrangeBasis, ShallowNetBasis
+from .ansatz import AbstractBasis, LagrangeBasis, ShallowNetBasis, SymbolicAnsatz, VISEBasis
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .interpolation import NetworkInterpolation
 from .methods import (
@@ -54,6 +54,7 @@ from .seeding import (
     PreviousStep,
 )
 from .solver import NetworkVI, NetworkVIState
+from .symbolic import compile_exprs, sympy_activation
 from .terms import IODETerm, LagrangianTerm
 
 __version__ = "0.1.0.dev0"
@@ -72,7 +73,12 @@ __all__ = [
     "ShallowNetAutodiff",
     "ShallowNetAutodiffReversible",
     "ShallowNetReversible",
+    "SymbolicAnsatz",
     "VISE",
+    "VISEBasis",
+    "compile_exprs",
+    "symbolic",
+    "sympy_activation",
     "AngularGrid",
     "BiasGrid1d",
     "FreeEndpoints",

@@ -276,3 +276,35 @@ def test_hermite_labels_come_from_the_previous_step():
     # The cubic interpolates both history points with their slopes.
     ends = hermite_cubic(history.q0, history.v0, q0, history.v1, history.h, jnp.array([0.0, 1.0]))
     np.testing.assert_allclose(ends[:, 0], [0.4, 0.5], rtol=1e-15)
+
+
+# -- derivative backends ----------------------------------------------------------------------
+
+
+def test_sympy_and_autodiff_backends_agree_on_a_solution():
+    problem = problems.harmonic_oscillator()
+    sols = [
+        run(problem, dvi.ShallowNet(B(dvi.tanh, 10, derivatives=d), GL(8)))
+        for d in ("autodiff", "sympy")
+    ]
+    for a, b in zip(sols[0].ys, sols[1].ys, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+    assert max_relative_error(problem, sols[1]) <= 1e-11
+
+
+def test_unknown_derivative_backend_refused():
+    with pytest.raises(ValueError, match="derivatives must be"):
+        B(dvi.tanh, 4, derivatives="symbolic")
+
+
+def test_vise_constructor_configures_initial_weights():
+    import sympy
+
+    t, w1, w2, w3 = sympy.symbols("t w1 w2 w3")
+    basis = dvi.SymbolicAnsatz([w1 * sympy.cos(w2 * t + w3)], [[w1, w2, w3]], t)
+    solver = dvi.VISE(basis, GL(4), [[0.5, 0.7, 0.0]])
+    assert solver.initial_guess == dvi.InitialWeights(((0.5, 0.7, 0.0),))
+    assert isinstance(solver.formulation, dvi.FreeEndpoints)
+    cgvi = dvi.CGVI(3)
+    assert cgvi.basis == dvi.LagrangeBasis(3) and cgvi.quadrature == GL(4)
+    assert isinstance(cgvi.initial_guess, dvi.LeastSquaresFit)

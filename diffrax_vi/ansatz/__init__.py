@@ -3,5 +3,6 @@
 from .base import AbstractBasis
 from .polynomial import LagrangeBasis
 from .shallow import ShallowNetBasis
+from .symbolic import SymbolicAnsatz, VISEBasis
 
-__all__ = ["AbstractBasis", "LagrangeBasis", "ShallowNetBasis"]
+__all__ = ["AbstractBasis", "LagrangeBasis", "ShallowNetBasis", "SymbolicAnsatz", "VISEBasis"]

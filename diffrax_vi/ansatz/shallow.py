@@ -11,6 +11,7 @@ from jaxtyping import Array
 
 from ..activations import activation_name, check_activation
 from ..oga.symmetry import AbstractSymmetry, MirrorPairs, NoSymmetry, SharedMirrorPairs, mirror
+from ..symbolic import symbolic_shallow_evaluate, sympy_activation
 from .base import AbstractBasis
 
 __all__ = ["ShallowNetBasis"]
@@ -48,11 +49,18 @@ class ShallowNetBasis(AbstractBasis):
       dtype of its input.
     - `width`: number of neurons `S` per coordinate (even with a mirrored symmetry).
     - `symmetry`: `NoSymmetry()` (default), `MirrorPairs()` or `SharedMirrorPairs()`.
+    - `derivatives`: `"autodiff"` (default: JAX differentiates the network) or `"sympy"`: the
+      neuron `α σ(wτ + β)` and its first derivatives in `(α, w, β, τ)` (and those of its
+      τ-derivative) are taken by sympy and compiled to JAX once, as the reference's symbolic
+      kernels; higher derivatives (the Newton Jacobian) differentiate that compiled code.
+      Both give the same solution; on CPU they also cost the same (see
+      `benchmarks/derivatives.py`).
     """
 
     activation: Callable = eqx.field(static=True)
     width: int = eqx.field(static=True)
     symmetry: AbstractSymmetry = eqx.field(static=True, default=NoSymmetry())
+    derivatives: str = eqx.field(static=True, default="autodiff")
 
     def __check_init__(self):
         if not callable(self.activation):
@@ -64,6 +72,10 @@ class ShallowNetBasis(AbstractBasis):
                 "symmetry must be NoSymmetry(), MirrorPairs() or SharedMirrorPairs(), got "
                 f"{self.symmetry!r}"
             )
+        if self.derivatives not in ("autodiff", "sympy"):
+            raise ValueError(f"derivatives must be 'autodiff' or 'sympy', got {self.derivatives!r}")
+        if self.derivatives == "sympy":
+            sympy_activation(self.activation)  # refuses an activation with no sympy form
         if self.mirrored and self.width % 2:
             raise ValueError(
                 f"mirrored neuron pairs need an even width; got width={self.width} with "
@@ -114,6 +126,8 @@ class ShallowNetBasis(AbstractBasis):
         return jnp.concatenate([alpha, w, beta], axis=0)
 
     def evaluate(self, theta, tau):
+        if self.derivatives == "sympy":
+            return symbolic_shallow_evaluate(self)(theta, tau)
         alpha, w, beta = self.split(theta)
         return jnp.sum(alpha * self.activation(w * tau + beta), axis=0)
 
@@ -127,5 +141,7 @@ class ShallowNetBasis(AbstractBasis):
         check_activation(self.activation, dtype)
 
     def __repr__(self):
-        sym = "" if not self.mirrored else f", symmetry={type(self.symmetry).__name__}()"
-        return f"ShallowNetBasis({activation_name(self.activation)}, width={self.width}{sym})"
+        extra = "" if not self.mirrored else f", symmetry={type(self.symmetry).__name__}()"
+        if self.derivatives != "autodiff":
+            extra += f", derivatives={self.derivatives!r}"
+        return f"ShallowNetBasis({activation_name(self.activation)}, width={self.width}{extra})"
