@@ -3,19 +3,9 @@
 float64 needs `jax.config.update("jax_enable_x64", True)`; the library never flips it.
 """
 
-from . import oga, problems, symbolic
+from . import oga, problems
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
-from .ansatz import AbstractBasis, LagrangeBasis, ShallowNetBasis, SymbolicAnsatz, VISEBasis
-from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
-from .interpolation import NetworkInterpolation
-from .methods import (
-    CGVI,
-    VISE,
-    ShallowNet,
-    ShallowNetAutodiff,
-    ShallowNetAutodiffReversible,
-    ShallowNetReversible,
-)
+from .ansatz import AbstractBasis, LagrangeBasis, ShallowNetBasis
 from .nonlinear import LevenbergMarquardt, RegularisedNewton
 from .oga import (
     OGA,
@@ -54,7 +44,6 @@ from .seeding import (
     PreviousStep,
 )
 from .solver import NetworkVI, NetworkVIState
-from .symbolic import compile_exprs, sympy_activation
 from .terms import IODETerm, LagrangianTerm
 
 __version__ = "0.1.0.dev0"
@@ -126,3 +115,23 @@ __all__ = [
     "sin",
     "tanh",
 ]
+
+
+_LAZY = {
+    "symbolic": ("diffrax_vi.symbolic", None),
+    "compile_exprs": ("diffrax_vi.symbolic", "compile_exprs"),
+    "sympy_activation": ("diffrax_vi.symbolic", "sympy_activation"),
+    "SymbolicAnsatz": ("diffrax_vi.ansatz.symbolic", "SymbolicAnsatz"),
+    "VISEBasis": ("diffrax_vi.ansatz.symbolic", "VISEBasis"),
+}
+
+
+def __getattr__(name):
+    # sympy takes over a second to import; the symbolic pieces load on first use.
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        mod = importlib.import_module(module)
+        return mod if attr is None else getattr(mod, attr)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

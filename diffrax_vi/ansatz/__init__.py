@@ -3,6 +3,14 @@
 from .base import AbstractBasis
 from .polynomial import LagrangeBasis
 from .shallow import ShallowNetBasis
-from .symbolic import SymbolicAnsatz, VISEBasis
 
 __all__ = ["AbstractBasis", "LagrangeBasis", "ShallowNetBasis", "SymbolicAnsatz", "VISEBasis"]
+
+
+def __getattr__(name):
+    # The symbolic ansatz needs sympy (slow to import): load it on first use.
+    if name in ("SymbolicAnsatz", "VISEBasis"):
+        from . import symbolic
+
+        return getattr(symbolic, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

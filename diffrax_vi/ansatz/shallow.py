@@ -11,7 +11,6 @@ from jaxtyping import Array
 
 from ..activations import activation_name, check_activation
 from ..oga.symmetry import AbstractSymmetry, MirrorPairs, NoSymmetry, SharedMirrorPairs, mirror
-from ..symbolic import symbolic_shallow_evaluate, sympy_activation
 from .base import AbstractBasis
 
 __all__ = ["ShallowNetBasis"]
@@ -75,6 +74,8 @@ class ShallowNetBasis(AbstractBasis):
         if self.derivatives not in ("autodiff", "sympy"):
             raise ValueError(f"derivatives must be 'autodiff' or 'sympy', got {self.derivatives!r}")
         if self.derivatives == "sympy":
+            from ..symbolic import sympy_activation  # sympy only when asked for
+
             sympy_activation(self.activation)  # refuses an activation with no sympy form
         if self.mirrored and self.width % 2:
             raise ValueError(
@@ -127,6 +128,8 @@ class ShallowNetBasis(AbstractBasis):
 
     def evaluate(self, theta, tau):
         if self.derivatives == "sympy":
+            from ..symbolic import symbolic_shallow_evaluate
+
             return symbolic_shallow_evaluate(self)(theta, tau)
         alpha, w, beta = self.split(theta)
         return jnp.sum(alpha * self.activation(w * tau + beta), axis=0)
