@@ -6,6 +6,16 @@ float64 needs `jax.config.update("jax_enable_x64", True)`; the library never fli
 from . import oga, problems
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
 from .ansatz import AbstractBasis, LagrangeBasis, ShallowNetBasis
+from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
+from .interpolation import NetworkInterpolation
+from .methods import (
+    CGVI,
+    VISE,
+    ShallowNet,
+    ShallowNetAutodiff,
+    ShallowNetAutodiffReversible,
+    ShallowNetReversible,
+)
 from .nonlinear import LevenbergMarquardt, RegularisedNewton
 from .oga import (
     OGA,
