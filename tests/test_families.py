@@ -308,3 +308,33 @@ def test_vise_constructor_configures_initial_weights():
     cgvi = dvi.CGVI(3)
     assert cgvi.basis == dvi.LagrangeBasis(3) and cgvi.quadrature == GL(4)
     assert isinstance(cgvi.initial_guess, dvi.LeastSquaresFit)
+
+
+def test_every_public_name_resolves_and_sympy_loads_lazily():
+    import subprocess
+    import sys
+
+    missing = [name for name in dvi.__all__ if not hasattr(dvi, name)]
+    assert not missing
+    code = "import sys, diffrax_vi; print('sympy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize("dtype, bound", [(jnp.float32, 1e-5), (jnp.float16, 1e-3)])
+def test_every_activation_works_in_reduced_precision(dtype, bound):
+    problem = problems.harmonic_oscillator(t1=0.2, dtype=dtype)
+    for act in (dvi.tanh, dvi.sigmoid, dvi.sin, dvi.gelu, dvi.elu, dvi.relu_k(3)):
+        solver = dvi.ShallowNetAutodiff(B(act, 6), GL(8))
+        sol = diffrax.diffeqsolve(
+            problem.term, solver, dtype(0), dtype(0.2), dtype(0.1), problem.y0,
+            args=problem.args, throw=False,
+        )  # fmt: skip
+        assert sol.ys[0].dtype == dtype and sol.ys[1].dtype == dtype
+        if dtype == jnp.float16 and act == dvi.relu_k(3):
+            # ReLU³ overflows float16 in the Newton Jacobian: it must fail loudly, not silently.
+            assert sol.result != diffrax.RESULTS.successful
+            continue
+        assert sol.result == diffrax.RESULTS.successful, act
+        q_ref, _ = problem.reference(np.asarray(sol.ts, np.float64))
+        assert np.max(np.abs(np.asarray(sol.ys[0], np.float64) - q_ref)) <= bound, act
