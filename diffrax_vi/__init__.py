@@ -52,6 +52,7 @@ from .seeding import (
     LeastSquaresFit,
     NoExtrapolation,
     PreviousStep,
+    TrajectoryFit,
 )
 from .solver import NetworkVI, NetworkVIState
 from .terms import IODETerm, LagrangianTerm
@@ -72,6 +73,7 @@ __all__ = [
     "ShallowNetAutodiff",
     "ShallowNetAutodiffReversible",
     "ShallowNetReversible",
+    "TrajectoryFit",
     "SymbolicAnsatz",
     "VISE",
     "VISEBasis",

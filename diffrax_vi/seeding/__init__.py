@@ -16,6 +16,7 @@ from .trajectories import (
     StepHistory,
     implicit_midpoint,
 )
+from .trajectory_fit import TrajectoryFit
 
 __all__ = [
     "AbstractInitialTrajectory",
@@ -28,6 +29,7 @@ __all__ = [
     "NoExtrapolation",
     "PreviousStep",
     "StepHistory",
+    "TrajectoryFit",
     "fit_network",
     "implicit_midpoint",
 ]
