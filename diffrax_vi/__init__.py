@@ -5,12 +5,13 @@ float64 needs `jax.config.update("jax_enable_x64", True)`; the library never fli
 
 from . import oga, problems
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
-from .ansatz import AbstractBasis, LagrangeBasis, ShallowNetBasis
+from .ansatz import AbstractBasis, DenseNetBasis, LagrangeBasis, ShallowNetBasis
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .interpolation import NetworkInterpolation
 from .methods import (
     CGVI,
     VISE,
+    DenseNet,
     ShallowNet,
     ShallowNetAutodiff,
     ShallowNetAutodiffReversible,
@@ -44,6 +45,7 @@ from .oga import (
 )
 from .quadrature import GaussLegendre, Simpson
 from .seeding import (
+    LSGD,
     AbstractInitialTrajectory,
     AbstractParameterSeed,
     HermiteExtrapolation,
@@ -52,6 +54,7 @@ from .seeding import (
     LeastSquaresFit,
     NoExtrapolation,
     PreviousStep,
+    TrainingMethod,
     TrajectoryFit,
 )
 from .solver import NetworkVI, NetworkVIState
@@ -60,6 +63,10 @@ from .terms import IODETerm, LagrangianTerm
 __version__ = "0.1.0.dev0"
 
 __all__ = [
+    "DenseNet",
+    "DenseNetBasis",
+    "LSGD",
+    "TrainingMethod",
     "AbstractBasis",
     "AbstractFormulation",
     "AbstractInitialTrajectory",

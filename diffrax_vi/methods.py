@@ -23,6 +23,7 @@ import math
 from typing import Any
 
 from .ansatz.base import AbstractBasis
+from .ansatz.dense import DenseNetBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
@@ -31,6 +32,7 @@ from .oga import OGA, OGA1d, OGA1dNormalized
 from .oga.symmetry import MirrorPairs, SharedMirrorPairs
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .seeding.fit import AbstractParameterSeed, InitialWeights, LeastSquaresFit
+from .seeding.training import LSGD
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
     HermiteExtrapolation,
@@ -42,6 +44,7 @@ from .solver import NetworkVI
 
 __all__ = [
     "CGVI",
+    "DenseNet",
     "ShallowNet",
     "ShallowNetAutodiff",
     "ShallowNetAutodiffReversible",
@@ -224,6 +227,15 @@ def ShallowNetAutodiffReversible(
     )
 
 
+def DenseNet(basis: DenseNetBasis, quadrature: AbstractQuadrature, **options: Any) -> NetworkVI:
+    """Two-hidden-layer network (`DenseNetBasis`) with free endpoints, seeded by `LSGD()`
+    (least squares for the output layer, gradient steps for the hidden ones) or
+    `TrainingMethod()` (Adam, via optax)."""
+    if not isinstance(basis, DenseNetBasis):
+        raise TypeError(f"DenseNet needs a DenseNetBasis, got {basis!r}")
+    return _build("DenseNet", basis, quadrature, FreeEndpoints(), LSGD(), options)
+
+
 def VISE(basis: AbstractBasis, quadrature: AbstractQuadrature, init_w, **options: Any) -> NetworkVI:
     """Variational integrator with a symbolic ansatz in absolute time (`SymbolicAnsatz`), free
     endpoints. The weights start from `init_w` on the first step and from the previous
@@ -276,5 +288,6 @@ def _frozen(values):
 for _method in (ShallowNet, ShallowNetAutodiff, ShallowNetReversible, ShallowNetAutodiffReversible):
     _method.__doc__ = (_method.__doc__ or "") + "\n" + _SHARED_DOC
 VISE.__doc__ = (VISE.__doc__ or "") + "\n" + _SHARED_DOC
+DenseNet.__doc__ = (DenseNet.__doc__ or "") + "\n" + _SHARED_DOC
 CGVI.__doc__ = (CGVI.__doc__ or "") + "\n" + _SHARED_DOC
 del _method

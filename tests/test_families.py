@@ -338,3 +338,13 @@ def test_every_activation_works_in_reduced_precision(dtype, bound):
         assert sol.result == diffrax.RESULTS.successful, act
         q_ref, _ = problem.reference(np.asarray(sol.ts, np.float64))
         assert np.max(np.abs(np.asarray(sol.ys[0], np.float64) - q_ref)) <= bound, act
+
+
+def test_dense_net_constructor_defaults_to_lsgd_and_refuses_other_bases():
+    solver = dvi.DenseNet(dvi.DenseNetBasis(dvi.tanh, 8, 8), GL(8))
+    assert solver.initial_guess == dvi.LSGD()
+    assert isinstance(solver.formulation, dvi.FreeEndpoints)
+    with pytest.raises(TypeError, match="DenseNetBasis"):
+        dvi.DenseNet(B(dvi.tanh, 8), GL(8))
+    with pytest.raises(ValueError, match="OGA seed fits shallow networks"):
+        dvi.NetworkVI(dvi.DenseNetBasis(dvi.tanh, 8, 8), GL(8))

@@ -1,10 +1,18 @@
 """Trial trajectories on one step: `q_h(τ; θ)`, `τ ∈ [0, 1]` (networks, polynomials)."""
 
 from .base import AbstractBasis
+from .dense import DenseNetBasis
 from .polynomial import LagrangeBasis
 from .shallow import ShallowNetBasis
 
-__all__ = ["AbstractBasis", "LagrangeBasis", "ShallowNetBasis", "SymbolicAnsatz", "VISEBasis"]
+__all__ = [
+    "AbstractBasis",
+    "DenseNetBasis",
+    "LagrangeBasis",
+    "ShallowNetBasis",
+    "SymbolicAnsatz",
+    "VISEBasis",
+]
 
 
 def __getattr__(name):

@@ -7,6 +7,7 @@ from .fit import (
     LeastSquaresFit,
     fit_network,
 )
+from .training import LSGD, TrainingMethod
 from .trajectories import (
     AbstractInitialTrajectory,
     HermiteExtrapolation,
@@ -19,6 +20,8 @@ from .trajectories import (
 from .trajectory_fit import TrajectoryFit
 
 __all__ = [
+    "LSGD",
+    "TrainingMethod",
     "AbstractInitialTrajectory",
     "AbstractParameterSeed",
     "FitProblem",
