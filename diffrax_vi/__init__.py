@@ -82,11 +82,13 @@ __all__ = [
     "ShallowNetReversible",
     "TrajectoryFit",
     "SymbolicAnsatz",
+    "SympyLagrangianTerm",
     "VISE",
     "VISEBasis",
     "compile_exprs",
     "symbolic",
     "sympy_activation",
+    "sympy_lagrangian_term",
     "AngularGrid",
     "BiasGrid1d",
     "FreeEndpoints",
@@ -142,6 +144,8 @@ _LAZY = {
     "sympy_activation": ("diffrax_vi.symbolic", "sympy_activation"),
     "SymbolicAnsatz": ("diffrax_vi.ansatz.symbolic", "SymbolicAnsatz"),
     "VISEBasis": ("diffrax_vi.ansatz.symbolic", "VISEBasis"),
+    "SympyLagrangianTerm": ("diffrax_vi.sympy_terms", "SympyLagrangianTerm"),
+    "sympy_lagrangian_term": ("diffrax_vi.sympy_terms", "sympy_lagrangian_term"),
 }
 
 

@@ -15,6 +15,7 @@ import optimistix as optx
 from jaxtyping import Array, PyTree
 
 from .ansatz.base import AbstractBasis
+from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
 from .formulation import (
     AbstractFormulation,
@@ -105,6 +106,16 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
     - `adjoint`: how `optimistix.root_find` differentiates a converged step. The default solves
       the implicit-function system by least squares, since the step's Jacobian is singular.
+    - `error_estimate`: `None` (default: no error estimate, for fixed steps, `StepTo` and
+      `ConstantStepSize`) or a polynomial degree `k` for adaptive steps with
+      `diffrax.PIDController`. Each step then also solves the classical cGVI of degree `k`
+      (`LagrangeBasis(k)`, `GaussLegendre(k + 1)`, order `2k`) from the same start, seeded by
+      the converged curve, and reports the difference of the two end states as `y_error`
+      (`error_order = 2k + 1`). This is the error of the lower-order companion, so it
+      over-estimates the network's error, and the controller picks conservative steps. A
+      failed step reports an infinite error, so the controller rejects it and retries with a
+      smaller step. Varying steps break the symplectic, energy-bounding behaviour of a
+      variational integrator: use them for transients, fixed steps for long runs.
     """
 
     basis: AbstractBasis
@@ -119,6 +130,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         linear_solver=lx.AutoLinearSolver(well_posed=False)
     )
     formulation: AbstractFormulation = FreeEndpoints()
+    error_estimate: int | None = eqx.field(static=True, default=None)
 
     term_structure: ClassVar = AbstractMechanicalTerm
 
@@ -169,6 +181,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
         if not isinstance(self.dict_amount, int) or self.dict_amount < 1:
             raise ValueError(f"dict_amount must be a positive integer, got {self.dict_amount!r}")
+        if self.error_estimate is not None and (
+            not isinstance(self.error_estimate, int)
+            or isinstance(self.error_estimate, bool)
+            or self.error_estimate < 1
+        ):
+            raise ValueError(
+                "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
+                f"{self.error_estimate!r}"
+            )
         if not isinstance(self.root_find_max_steps, int) or self.root_find_max_steps < 1:
             raise ValueError(
                 f"root_find_max_steps must be a positive integer, got {self.root_find_max_steps!r}"
@@ -181,6 +202,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def order(self, terms) -> int | None:
         return None
+
+    def error_order(self, terms) -> int | None:
+        return None if self.error_estimate is None else 2 * self.error_estimate + 1
 
     # -- helpers --------------------------------------------------------------------------------
     def _context(self, terms, t0, t1, y0, args) -> StepContext:
@@ -288,14 +312,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             return self.formulation.position(ctx.basis, theta, ctx.q0, q1, tau)
 
         q_nodes, dq_nodes = stage_values(curve, ctx.nodes)
-        p_nodes, _ = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
+        _, f_nodes = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
         dense_info = dict(
             theta=theta,
             q0=ctx.q0,
             q1=q1,
             p0=ctx.p0,
             p1=p1,
-            p_nodes=p_nodes.astype(ctx.p0.dtype),
+            f_nodes=f_nodes.astype(ctx.p0.dtype),
             t_step=ctx.t,
             h_step=ctx.h,
         )
@@ -314,7 +338,41 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             histogram=state.histogram.at[jnp.minimum(n, self.root_find_max_steps)].add(1),
             warm_starts=state.warm_starts + (warm_used & ~state.fresh).astype(jnp.int32),
         )
-        return (q1, p1), None, dense_info, new_state, result
+        y_error = None
+        if self.error_estimate is not None:
+            ok = (result == diffrax.RESULTS.successful) & finite
+            y_error = self._companion_error(ctx, curve, q1, p1, ok)
+        return (q1, p1), y_error, dense_info, new_state, result
+
+    def _companion_error(self, ctx: StepContext, curve, q1, p1, ok) -> tuple[Array, Array]:
+        """End-state difference to the cGVI of degree `error_estimate` (inf on failure)."""
+        degree = self.error_estimate
+        basis = LagrangeBasis(degree)
+        nodes, weights = GaussLegendre(degree + 1).nodes_weights(ctx.q0.dtype)
+        companion = StepContext(
+            ctx.term, basis, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, nodes, weights
+        )
+        points = jnp.asarray(basis.control_points, ctx.q0.dtype)
+        seed = jax.lax.stop_gradient((jax.vmap(curve)(points), p1))
+        form = FreeEndpoints()
+        sol = optx.root_find(
+            lambda x, c: form.residual(x, c),
+            self.root_finder,
+            seed,
+            companion,
+            options=dict(
+                scale=_residual_scale(ctx), outputs=lambda x: form.end_state(x, companion)
+            ),
+            max_steps=self.root_find_max_steps,
+            adjoint=self.adjoint,
+            throw=False,
+        )
+        qc, pc = form.end_state(sol.value, companion)
+        good = ok & (sol.result == optx.RESULTS.successful)
+        inf = jnp.asarray(jnp.inf, ctx.q0.dtype)
+        eq = jnp.where(good, (q1 - qc).astype(ctx.q0.dtype), inf)
+        ep = jnp.where(good, (p1 - pc).astype(ctx.p0.dtype), inf)
+        return jax.lax.stop_gradient((eq, ep))
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)

@@ -65,6 +65,43 @@ class AbstractMechanicalTerm(diffrax.AbstractTerm):
         """The same Hamiltonian vector field as a plain `diffrax.ODETerm`."""
         return diffrax.ODETerm(self.vf)
 
+    def separable_terms(
+        self, y0: tuple[ArrayLike, ArrayLike] | None = None, args: PyTree = None, *, t0=0.0
+    ) -> tuple[diffrax.ODETerm, diffrax.ODETerm]:
+        """The pair of terms `(dq/dt, dp/dt)` of a separable system, for
+        `diffrax.SemiImplicitEuler` (or any solver that takes a pair of terms).
+
+        Only valid when the Lagrangian separates as `L = T(t, v) − V(t, q)` (e.g.
+        `T = ½ vᵀMv` with a constant mass matrix `M`), i.e. when the Hamiltonian is
+        `K(t, p) + V(t, q)`. Then the velocity does not depend on `q` and the force does not
+        depend on `v`, and the pair is
+
+        - `diffrax.ODETerm(lambda t, p, args: velocity(t, 0, p, args))`, the inverse Legendre
+          map evaluated at `q = 0` (`M⁻¹p` for a quadratic `T`),
+        - `diffrax.ODETerm(lambda t, q, args: force(t, q, 0, args))`, the force `∂L/∂q = −∇V`
+          evaluated at `v = 0`.
+
+        For a non-separable system these are silently wrong, so pass a sample state to check:
+
+        **Arguments:**
+
+        - `y0`: optional sample state `(q, p)` (typically the initial condition). When given
+          (and concrete, not traced), the mixed derivatives `∂ϑ/∂q = ∂²L/∂v∂q` and
+          `∂f/∂v = ∂²L/∂q∂v` are evaluated at `q0` and a generic velocity, and a `ValueError`
+          is raised unless both vanish (up to rounding). This is a check at one point, not a
+          proof of separability.
+        - `args`: the `args` the system will be integrated with (used by the check only).
+        - `t0`: the time of the check.
+
+        **Returns:**
+
+        A tuple `(velocity_term, force_term)` of `diffrax.ODETerm`s, for
+        `diffeqsolve((velocity_term, force_term), diffrax.SemiImplicitEuler(), ..., y0=(q0, p0))`.
+        """
+        if y0 is not None:
+            _check_separable(self, y0, args, t0)
+        return diffrax.ODETerm(_SeparableVelocity(self)), diffrax.ODETerm(_SeparableForce(self))
+
 
 def _split_state(y) -> tuple[Array, Array]:
     if not (isinstance(y, tuple | list) and len(y) == 2):
@@ -152,6 +189,43 @@ class LagrangianTerm(AbstractMechanicalTerm):
         v = self.velocity(t, q, p, args)
         return jnp.sum(p * v) - self(t, q, v, args)
 
+    @classmethod
+    def from_sympy(
+        cls,
+        lagrangian,
+        q_symbols,
+        v_symbols,
+        t=None,
+        params=(),
+        *,
+        velocity: Callable | None = None,
+        legendre_iterations: int | None = None,
+        cse: bool = True,
+    ) -> LagrangianTerm:
+        """Build a term from a sympy expression of the Lagrangian.
+
+        `L` and its derivatives (`∂L/∂v`, `∂L/∂q`, the Hessian `∂²L/∂v²` of the Legendre
+        inverse and the energy `v·∂L/∂v − L`) are differentiated by sympy and compiled to JAX
+        with `diffrax_vi.symbolic.compile_exprs` (shared subexpressions, constants in the
+        working dtype, cached per expression). The result is a `SympyLagrangianTerm`, a
+        `LagrangianTerm` with the same methods, usable by every solver that takes one.
+
+        See `diffrax_vi.sympy_terms.sympy_lagrangian_term` for the arguments; sympy is
+        imported only when this is called.
+        """
+        from .sympy_terms import sympy_lagrangian_term
+
+        return sympy_lagrangian_term(
+            lagrangian,
+            q_symbols,
+            v_symbols,
+            t,
+            params,
+            velocity=velocity,
+            legendre_iterations=legendre_iterations,
+            cse=cse,
+        )
+
 
 class IODETerm(AbstractMechanicalTerm):
     """A mechanical system given directly by its momentum and force maps.
@@ -220,6 +294,56 @@ class IODETerm(AbstractMechanicalTerm):
         if self.hamiltonian is None:
             raise ValueError("this IODETerm was built without a hamiltonian=H(t, q, p, args)")
         return self.hamiltonian(t, q, p, args)
+
+
+class _SeparableVelocity(eqx.Module):
+    """`(t, p, args) ↦ v(t, 0, p)`: the velocity of a separable system."""
+
+    term: AbstractMechanicalTerm
+
+    def __call__(self, t, p, args):
+        p = jnp.asarray(p)
+        return self.term.velocity(t, jnp.zeros_like(p), p, args).astype(p.dtype)
+
+
+class _SeparableForce(eqx.Module):
+    """`(t, q, args) ↦ f(t, q, 0)`: the force of a separable system."""
+
+    term: AbstractMechanicalTerm
+
+    def __call__(self, t, q, args):
+        q = jnp.asarray(q)
+        return self.term.force(t, q, jnp.zeros_like(q), args).astype(q.dtype)
+
+
+def _check_separable(term: AbstractMechanicalTerm, y0, args, t0) -> None:
+    q0, p0 = _split_state(y0)
+    q0, p0 = jnp.asarray(q0), jnp.asarray(p0)
+    if q0.shape != p0.shape:
+        raise ValueError(f"q and p must have the same shape; got {q0.shape} and {p0.shape}")
+
+    def mixed(t, q, p, args):
+        v = term.velocity(t, q, p, args)
+        # A generic velocity: ∂²L/∂v∂q = M'(q)·v vanishes at v = 0 even for a q-dependent mass.
+        v = v + (0.5 + jnp.arange(v.size, dtype=v.dtype).reshape(v.shape) / (v.size + 1))
+        dp_dq = jax.jacfwd(lambda x: term.momentum(t, x, v, args))(q)
+        df_dv = jax.jacfwd(lambda x: term.force(t, q, x, args))(v)
+        dp_dv = jax.jacfwd(lambda x: term.momentum(t, q, x, args))(v)
+        return jnp.max(jnp.abs(dp_dq)), jnp.max(jnp.abs(df_dv)), jnp.max(jnp.abs(dp_dv))
+
+    try:
+        values = [float(x) for x in mixed(t0, q0, p0, args)]
+    except jax.errors.ConcretizationTypeError:
+        return  # traced inputs: nothing to check at trace time
+    dp_dq, df_dv, scale = values
+    tol = 64 * float(jnp.finfo(jnp.result_type(q0)).eps) * max(1.0, scale)
+    if not (dp_dq <= tol and df_dv <= tol):
+        raise ValueError(
+            "the system is not separable (L = T(v) − V(t, q)), so its velocity and force "
+            "cannot be split into the pair of terms of SemiImplicitEuler: at the sample state "
+            f"max|∂²L/∂v∂q| = {max(dp_dq, df_dv):.3g} (allowed {tol:.1g}). Integrate the "
+            "term itself with a standard solver (Tsit5) or a variational one (NetworkVI)."
+        )
 
 
 def unwrap_term(terms: PyTree[Any]) -> tuple[AbstractMechanicalTerm, ArrayLike]:

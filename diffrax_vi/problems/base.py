@@ -50,7 +50,11 @@ class Problem:
     - `reference_flow`: the exact (or DOP853) flow of the nominal float64 problem: a callable
       taking elapsed times `ts - t0` (float64 array of shape `(N,)`) and returning `(q, p)`, two
       float64 numpy arrays of shape `(N, D)`. Use `reference` rather than calling it directly.
-    - `reference_method`: `"closed form"` or `"DOP853"`, how the reference is obtained.
+    - `reference_method`: `"closed form"` or `"DOP853"`, how the reference is obtained (or
+      `"stored"` for a tabulated high-accuracy solution, see `problems.stored`).
+    - `invariants`: optional conserved quantities, a mapping from name to `I(t, q, p, args)`
+      (same signature as `hamiltonian`; the value may be a scalar or an array, e.g. an
+      angular-momentum vector). Empty for problems that only conserve their energy.
     """
 
     name: str
@@ -64,6 +68,7 @@ class Problem:
     hamiltonian: Callable | None = None
     reference_flow: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
     reference_method: str = "closed form"
+    invariants: Mapping[str, Callable] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if not (isinstance(self.y0, tuple) and len(self.y0) == 2):
