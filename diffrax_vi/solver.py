@@ -26,7 +26,7 @@ from .formulation import (
 )
 from .interpolation import NetworkInterpolation
 from .nonlinear import LevenbergMarquardt
-from .oga import OGA, OGA1d
+from .oga import OGA, OGA1d, OGAReference
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .seeding.fit import AbstractParameterSeed, fit_problem, seed_parameters
 from .seeding.trajectories import (
@@ -121,7 +121,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     basis: AbstractBasis
     quadrature: AbstractQuadrature = GaussLegendre(8)
     initial_trajectory: AbstractInitialTrajectory = IntegratorExtrapolation()
-    initial_guess: OGA | AbstractParameterSeed = OGA1d()
+    initial_guess: OGA | OGAReference | AbstractParameterSeed = OGA1d()
     bias_interval: tuple[float, float] = eqx.field(static=True, default=(-math.pi, math.pi))
     dict_amount: int = eqx.field(static=True, default=4000)
     root_finder: optx.AbstractRootFinder = LevenbergMarquardt()
@@ -151,7 +151,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
                 f"NoExtrapolation() or PreviousStep(); got {self.initial_trajectory!r}"
             )
-        if isinstance(self.initial_guess, OGA):
+        if isinstance(self.initial_guess, OGA | OGAReference):
             if not isinstance(self.basis, ShallowNetBasis):
                 raise ValueError(
                     f"an OGA seed fits shallow networks; {self.basis!r} needs another "

@@ -197,3 +197,25 @@ def test_progress_meter_and_statistics():
     state = sol.solver_state
     assert int(state.steps) == 10 and int(jnp.sum(state.histogram)) == 10
     assert int(state.iterations) == int(jnp.sum(state.histogram * jnp.arange(state.histogram.size)))
+
+
+def test_event_stops_the_pendulum_at_its_first_turning_point():
+    from scipy.special import ellipk
+
+    term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v + jnp.sum(jnp.cos(q)))
+    p0 = 0.5
+    # Energy p0²/2 = 1 − cos θ_max; the quarter period is K(sin²(θ_max/2)) for unit frequency.
+    theta_max = math.acos(1 - p0**2 / 2)
+    t_star = float(ellipk(math.sin(theta_max / 2) ** 2))
+
+    def turning(t, y, args, **kwargs):
+        return y[1][0]
+
+    event = diffrax.Event(turning, root_finder=optx.Newton(rtol=1e-13, atol=1e-13))
+    sol = diffrax.diffeqsolve(
+        term, SOLVER, 0.0, 5.0, 0.1, (jnp.array([0.0]), jnp.array([p0])),
+        event=event, saveat=diffrax.SaveAt(t1=True),
+    )  # fmt: skip
+    assert sol.result == diffrax.RESULTS.event_occurred
+    assert abs(float(sol.ts[-1]) - t_star) < 1e-8
+    assert abs(float(sol.ys[0][-1, 0]) - theta_max) < 1e-8

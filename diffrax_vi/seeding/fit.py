@@ -19,7 +19,7 @@ from jaxtyping import Array, PyTree
 from ..ansatz.base import AbstractBasis
 from ..ansatz.shallow import ShallowNetBasis
 from ..linalg import solve
-from ..oga import OGA, oga_fit
+from ..oga import OGA, OGAReference, oga_fit
 from ..quadrature import Simpson
 
 __all__ = [
@@ -68,7 +68,7 @@ class AbstractParameterSeed(eqx.Module):
 
 def fit_network(
     basis: ShallowNetBasis,
-    config: OGA,
+    config: OGA | OGAReference,
     problem: FitProblem,
     bias_interval: tuple[float, float],
     dict_amount: int,
@@ -156,6 +156,6 @@ def seed_parameters(
     seed, basis: AbstractBasis, problem: FitProblem, bias_interval, dict_amount
 ) -> PyTree:
     """Dispatch a seed (an `OGA` configuration or an `AbstractParameterSeed`)."""
-    if isinstance(seed, OGA):
+    if isinstance(seed, OGA | OGAReference):
         return fit_network(basis, seed, problem, bias_interval, dict_amount)
     return seed.fit(basis, problem)
