@@ -219,3 +219,31 @@ def test_event_stops_the_pendulum_at_its_first_turning_point():
     assert sol.result == diffrax.RESULTS.event_occurred
     assert abs(float(sol.ts[-1]) - t_star) < 1e-8
     assert abs(float(sol.ys[0][-1, 0]) - theta_max) < 1e-8
+
+
+def test_pid_on_kepler_needs_fewer_steps_than_constant_stepping():
+    """Kepler, e = 0.6, one period: adaptive steps reach the tolerance in fewer steps than
+    constant steps that end with a larger error (measured: 19 accepted + 7 rejected steps,
+    error 2.7e-9, against 32 constant steps with error 7.2e-8 and 64 with 5.5e-9)."""
+    problem = dvi.problems.kepler(eccentricity=0.6, t1=2 * math.pi)
+    t1 = 2 * math.pi
+    q_ref, p_ref = problem.reference(np.array([t1]))
+
+    def error(sol):
+        return max(
+            float(np.max(np.abs(np.asarray(sol.ys[0][-1]) - q_ref[0]))),
+            float(np.max(np.abs(np.asarray(sol.ys[1][-1]) - p_ref[0]))),
+        )
+
+    adaptive = diffrax.diffeqsolve(
+        problem.term, solver(error_estimate=3), 0.0, t1, 0.1, problem.y0, args=problem.args,
+        stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6),
+        saveat=diffrax.SaveAt(t1=True),
+    )  # fmt: skip
+    constant = diffrax.diffeqsolve(
+        problem.term, SOLVER, 0.0, t1, t1 / 32, problem.y0, args=problem.args,
+        saveat=diffrax.SaveAt(t1=True),
+    )  # fmt: skip
+    attempts = int(adaptive.stats["num_accepted_steps"] + adaptive.stats["num_rejected_steps"])
+    assert error(adaptive) <= 1e-6
+    assert attempts < 32 and error(adaptive) < error(constant)
