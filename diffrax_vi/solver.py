@@ -54,6 +54,8 @@ class NetworkVIState(eqx.Module):
       bin also counts steps that ran out of iterations), e.g. for the median per step.
     - `warm_starts`: number of steps seeded by `PreviousStep`'s warm start (the others were
       seeded by a trajectory fit).
+    - `iteration_log`: the iterations of each accepted step, in order, for the first
+      `NetworkVI.iteration_log` steps (empty by default).
     """
 
     theta: PyTree
@@ -66,6 +68,7 @@ class NetworkVIState(eqx.Module):
     steps: Array
     histogram: Array
     warm_starts: Array
+    iteration_log: Array
 
 
 class NetworkVI(diffrax.AbstractImplicitSolver):
@@ -106,6 +109,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
     - `adjoint`: how `optimistix.root_find` differentiates a converged step. The default solves
       the implicit-function system by least squares, since the step's Jacobian is singular.
+    - `iteration_log`: keep the iteration count of each of the first `iteration_log` accepted
+      steps in the solver state (`SaveAt(solver_state=True)`, then
+      `sol.solver_state.iteration_log`). Default 0: only totals and the histogram.
     - `error_estimate`: `None` (default: no error estimate, for fixed steps, `StepTo` and
       `ConstantStepSize`) or a polynomial degree `k` for adaptive steps with
       `diffrax.PIDController`. Each step then also solves the classical cGVI of degree `k`
@@ -131,6 +137,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     )
     formulation: AbstractFormulation = FreeEndpoints()
     error_estimate: int | None = eqx.field(static=True, default=None)
+    iteration_log: int = eqx.field(static=True, default=0)
 
     term_structure: ClassVar = AbstractMechanicalTerm
 
@@ -189,6 +196,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             raise ValueError(
                 "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
                 f"{self.error_estimate!r}"
+            )
+        if not isinstance(self.iteration_log, int) or self.iteration_log < 0:
+            raise ValueError(
+                f"iteration_log must be a non-negative integer, got {self.iteration_log!r}"
             )
         if not isinstance(self.root_find_max_steps, int) or self.root_find_max_steps < 1:
             raise ValueError(
@@ -264,6 +275,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             steps=zero,
             histogram=jnp.zeros(self.root_find_max_steps + 1, jnp.int32),
             warm_starts=zero,
+            iteration_log=jnp.full(self.iteration_log, -1, jnp.int32),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -337,6 +349,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             steps=state.steps + 1,
             histogram=state.histogram.at[jnp.minimum(n, self.root_find_max_steps)].add(1),
             warm_starts=state.warm_starts + (warm_used & ~state.fresh).astype(jnp.int32),
+            iteration_log=(
+                state.iteration_log.at[state.steps].set(n, mode="drop")
+                if self.iteration_log
+                else state.iteration_log
+            ),
         )
         y_error = None
         if self.error_estimate is not None:

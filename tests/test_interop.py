@@ -197,6 +197,14 @@ def test_progress_meter_and_statistics():
     state = sol.solver_state
     assert int(state.steps) == 10 and int(jnp.sum(state.histogram)) == 10
     assert int(state.iterations) == int(jnp.sum(state.histogram * jnp.arange(state.histogram.size)))
+    # Per-step counts on request.
+    logged = diffrax.diffeqsolve(
+        TERM, solver(iteration_log=16), 0.0, 1.0, 0.1, Y0, args=0.5,
+        saveat=diffrax.SaveAt(t1=True, solver_state=True),
+    ).solver_state  # fmt: skip
+    per_step = np.asarray(logged.iteration_log)
+    assert per_step.shape == (16,) and np.all(per_step[10:] == -1)
+    assert per_step[:10].sum() == int(logged.iterations) and np.all(per_step[:10] >= 1)
 
 
 def test_event_stops_the_pendulum_at_its_first_turning_point():
