@@ -29,8 +29,11 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from diffrax_vi.problems import (  # noqa: E402
+    coupled_oscillators,
+    double_pendulum,
     henon_heiles,
     outer_solar_system,
+    pendulum,
     perturbed_pendulum,
     toda_lattice,
 )
@@ -45,6 +48,9 @@ SETTINGS = {
     "perturbed_pendulum": (perturbed_pendulum, 0.25, 1, 8),
     "toda_lattice": (toda_lattice, 0.5, 1, 8),
     "outer_solar_system": (outer_solar_system, 2.0, 1, 4),
+    "pendulum": (pendulum, 0.25, 1, 8),
+    "double_pendulum": (double_pendulum, 0.0625, 1, 4),
+    "coupled_oscillators": (coupled_oscillators, 0.25, 1, 8),
 }
 
 
