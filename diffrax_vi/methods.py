@@ -256,7 +256,7 @@ def VISE(basis: AbstractBasis, quadrature: AbstractQuadrature, init_w, **options
     `TrajectoryFit` fits the weights to the initial trajectory from both the initial and
     the previous weights and keeps the better fit.
     """
-    guess = options.pop("initial_guess_method", None) or InitialWeights(_frozen(init_w))
+    guess = options.pop("initial_guess_method", None) or InitialWeights(init_w)
     return _build("VISE", basis, quadrature, FreeEndpoints(), guess, options)
 
 
@@ -273,16 +273,6 @@ def CGVI(
     basis = LagrangeBasis(degree, points)
     quadrature = quadrature if quadrature is not None else GaussLegendre(degree + 1)
     return _build("CGVI", basis, quadrature, FreeEndpoints(), LeastSquaresFit(), options)
-
-
-def _frozen(values):
-    """Nested sequences of numbers as nested tuples of floats (hashable static data)."""
-    if isinstance(values, int | float):
-        return float(values)
-    try:
-        return tuple(_frozen(v) for v in values)
-    except TypeError:
-        return float(values)
 
 
 for _method in (ShallowNet, ShallowNetAutodiff, ShallowNetReversible, ShallowNetAutodiffReversible):

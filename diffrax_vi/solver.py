@@ -31,6 +31,7 @@ from .quadrature import AbstractQuadrature, GaussLegendre
 from .seeding.fit import AbstractParameterSeed, fit_problem, seed_parameters
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
+    HermiteExtrapolation,
     IntegratorExtrapolation,
     PreviousStep,
     StepHistory,
@@ -229,6 +230,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         basis = self.basis.at_step(t, h)
         return StepContext(term, basis, t, h, q0, p0, args, nodes, weights)
 
+    def _uses_history(self) -> bool:
+        trajectory = self.initial_trajectory
+        if isinstance(trajectory, PreviousStep):
+            trajectory = trajectory.first
+        return isinstance(trajectory, HermiteExtrapolation)
+
     def _cold_seed(self, ctx: StepContext, state: NetworkVIState | None):
         history = None if state is None else state.history
         labels, p_end = self.initial_trajectory.labels(
@@ -335,7 +342,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             t_step=ctx.t,
             h_step=ctx.h,
         )
-        history = _history(ctx, curve, q1)
+        # Only Hermite extrapolation reads the previous step's ends; skip the work otherwise.
+        history = _history(ctx, curve, q1) if self._uses_history() else state.history
 
         n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
         new_state = NetworkVIState(

@@ -119,6 +119,16 @@ class LeastSquaresFit(AbstractParameterSeed):
         return solve(a.T @ a, a.T @ y)
 
 
+def frozen_values(values):
+    """Nested sequences of numbers as nested tuples of floats (hashable, for static fields)."""
+    if isinstance(values, int | float):
+        return float(values)
+    try:
+        return tuple(frozen_values(v) for v in values)
+    except TypeError:
+        return float(values)
+
+
 class InitialWeights(AbstractParameterSeed):
     """Fixed starting parameters, then the previous step's converged ones (VISE's seed).
 
@@ -134,7 +144,7 @@ class InitialWeights(AbstractParameterSeed):
     - `restart_radius`: see above; `None` never restarts.
     """
 
-    init: PyTree = eqx.field(static=True)
+    init: PyTree = eqx.field(static=True, converter=frozen_values)
     restart_radius: float | None = eqx.field(static=True, default=1.0)
 
     def fit(self, basis, problem):

@@ -9,7 +9,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from ..linalg import damped_least_squares
-from .fit import AbstractParameterSeed, FitProblem
+from .fit import AbstractParameterSeed, FitProblem, frozen_values
 
 __all__ = ["TrajectoryFit"]
 
@@ -52,7 +52,7 @@ class TrajectoryFit(AbstractParameterSeed):
       norm). Default `1e-3`.
     """
 
-    init: PyTree = eqx.field(static=True, converter=lambda v: _frozen(v))
+    init: PyTree = eqx.field(static=True, converter=frozen_values)
     restart_radius: float | None = eqx.field(static=True, default=None)
     iterations: int = eqx.field(static=True, default=60)
     damping: float = eqx.field(static=True, default=1e-3)
@@ -94,16 +94,6 @@ class TrajectoryFit(AbstractParameterSeed):
         )
         best = jnp.where(use_prev & (c_prev <= c_init), v_prev, v_init)
         return unravel(best)
-
-
-def _frozen(values):
-    """Nested sequences of numbers as nested tuples of floats (hashable static data)."""
-    if isinstance(values, int | float):
-        return float(values)
-    try:
-        return tuple(_frozen(v) for v in values)
-    except TypeError:
-        return float(values)
 
 
 def _misfit(basis, problem: FitProblem, unravel, dtype):
