@@ -106,7 +106,7 @@ def _build(
     guess = options.get("initial_guess_method") or default_guess
     epochs = options.get("training_epochs")
     if epochs is not None and hasattr(guess, "epochs"):
-        guess = type(guess)(**{**_fields(guess), "epochs": epochs})
+        guess = dataclasses.replace(guess, epochs=epochs)
     if options.get("regularization_factor") is not None:
         if "root_finder" in options:
             raise TypeError(f"{name}: give either regularization_factor or root_finder, not both")
@@ -123,10 +123,6 @@ def _build(
         dict_amount=options.get("dict_amount", 4000),
         **kwargs,
     )
-
-
-def _fields(module) -> dict[str, Any]:
-    return {f.name: getattr(module, f.name) for f in dataclasses.fields(module) if f.init}
 
 
 def _shallow(name: str, basis, symmetry=None) -> ShallowNetBasis:

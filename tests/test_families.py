@@ -343,6 +343,8 @@ def test_every_activation_works_in_reduced_precision(dtype, bound):
 def test_dense_net_constructor_defaults_to_lsgd_and_refuses_other_bases():
     solver = dvi.DenseNet(dvi.DenseNetBasis(dvi.tanh, 8, 8), GL(8))
     assert solver.initial_guess == dvi.LSGD()
+    short = dvi.DenseNet(dvi.DenseNetBasis(dvi.tanh, 8, 8), GL(8), training_epochs=11)
+    assert short.initial_guess == dvi.LSGD(epochs=11)
     assert isinstance(solver.formulation, dvi.FreeEndpoints)
     with pytest.raises(TypeError, match="DenseNetBasis"):
         dvi.DenseNet(B(dvi.tanh, 8), GL(8))
