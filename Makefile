@@ -4,12 +4,12 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test test-fast test-long lint bench clean
+.PHONY: setup demo test test-fast test-long lint bench docs clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[test]"
+	$(BIN)/python -m pip install -q -e ".[test,docs]"
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -31,8 +31,16 @@ test-long: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check diffrax_vi tests examples benchmarks
 
+# The documentation site, built strictly (any warning fails) into site/. Also installs
+# Debian's chromium, which the browser test of the built site (tests/test_docs.py) needs.
+docs: $(STAMP) /usr/bin/chromium
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+
+/usr/bin/chromium:
+	apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium
+
 bench: $(STAMP)
 	$(BIN)/python benchmarks/step_cost.py
 
 clean:
-	rm -rf $(VENV) build dist *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) build dist site *.egg-info .pytest_cache .ruff_cache tests/artifacts
