@@ -190,9 +190,9 @@ def test_examples_page_shows_the_script_and_its_figure(site):
     assert (site / "figures" / "quickstart.png").is_file()
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_example_script_runs(tmp_path):
-    """The example the Examples page shows runs as shown."""
+    """The example the Examples page shows runs as shown (about 75 s of CPU: `make test-long`)."""
     out = tmp_path / "quickstart.png"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "examples" / "quickstart.py"), "--out", str(out)],

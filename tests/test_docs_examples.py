@@ -3,7 +3,8 @@
 The blocks of a page run in order in one namespace (a page reads like one script), in a
 temporary working directory. Blocks that include a file (`--8<-- "examples/x.py"`) are the
 example scripts, run by `tests/test_docs.py`. All pages run in this one module, so solves that
-several pages share (the same term, solver and output) compile once.
+several pages share (the same term, solver and output) compile once. The pages in
+`LONG_PAGES` are marked `long` (run by `make test-long`) to keep CI within its time budget.
 """
 
 from __future__ import annotations
@@ -23,6 +24,21 @@ def python_blocks(page: Path) -> list[str]:
 
 
 PAGES = sorted(p for p in DOCS.rglob("*.md") if python_blocks(p))
+
+# Each page compiles its own solves (about 20 s of CPU each on the CI machine). These pages run
+# in `make test-long`; the others, which cover the quickstart, the problem library, dense
+# output and events, degenerate terms and float32, run in `make test` and CI.
+LONG_PAGES = {
+    "how-to/gradients.md": "reverse-mode gradient of a solve: the costliest compile",
+    "how-to/ensembles.md": "a vmapped solve (the tests of the solver cover vmap too)",
+    "how-to/lagrangians.md": "another user Lagrangian (the Home quickstart runs one in CI)",
+}
+
+
+def _param(page: Path):
+    name = page.relative_to(DOCS).as_posix()
+    marks = [pytest.mark.long] if name in LONG_PAGES else []
+    return pytest.param(page, marks=marks, id=name)
 
 
 def test_the_pages_have_examples():
@@ -50,7 +66,12 @@ def test_fence_parser_sees_blocks_and_skips_includes(tmp_path):
     assert python_blocks(page) == ["x = 1\n", "y = x + 1\n"]
 
 
-@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(DOCS).as_posix())
+def test_long_pages_exist():
+    names = {p.relative_to(DOCS).as_posix() for p in PAGES}
+    assert set(LONG_PAGES) <= names
+
+
+@pytest.mark.parametrize("page", [_param(p) for p in PAGES])
 def test_page_examples_run(page, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     namespace: dict = {"__name__": "__docs_example__"}
