@@ -27,11 +27,12 @@ PAGES = sorted(p for p in DOCS.rglob("*.md") if python_blocks(p))
 
 # Each page compiles its own solves (about 20 s of CPU each on the CI machine). These pages run
 # in `make test-long`; the others, which cover the quickstart, the problem library, dense
-# output and events, degenerate terms and float32, run in `make test` and CI.
+# output and events and degenerate terms, run in `make test` and CI.
 LONG_PAGES = {
     "how-to/gradients.md": "reverse-mode gradient of a solve: the costliest compile",
     "how-to/ensembles.md": "a vmapped solve (the tests of the solver cover vmap too)",
     "how-to/lagrangians.md": "another user Lagrangian (the Home quickstart runs one in CI)",
+    "how-to/precision.md": "float32 solve, the configuration of test_solver's float32 test",
 }
 
 
