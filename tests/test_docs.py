@@ -90,6 +90,8 @@ def test_every_public_object_has_an_api_entry(site):
     for ident, page in entries.items():
         text = (site / "api" / f"{page}.html").read_text(encoding="utf-8")
         assert f'id="{ident}"' in text, f"{ident} is missing from the built api/{page}.html"
+        # object.__init__'s docstring must not stand in for a class's own words.
+        assert "Initialize self" not in text, f"api/{page}.html shows object.__init__'s docstring"
 
 
 def own_docstring(obj) -> str | None:
