@@ -18,8 +18,11 @@ demo: $(STAMP)
 	$(BIN)/python examples/quickstart.py
 
 # pytest exits 5 when it collects nothing; make treats that as a failure.
+# Test files are spread over PYTEST_WORKERS processes (pytest-xdist), one file per worker at
+# a time so that a module's compiled solves are reused within it.
+PYTEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow and not long"
