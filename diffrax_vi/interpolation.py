@@ -82,7 +82,11 @@ class NetworkInterpolation(diffrax.AbstractLocalInterpolation):
         tau = jnp.asarray((t0 - self.t0) / (self.t1 - self.t0), dtype)
         basis = self.basis.at_step(self.t_step, self.h_step)
         q = self.formulation.dense_position(basis, self.theta, self.q0, self.q1, tau)
-        return q, self._momentum(tau)
+        p = self._momentum(tau)
+        # The step's start is the accepted state itself (also when this step failed and its
+        # curve is NaN: diffrax saves `t0` from the first step's interpolation).
+        start = tau == 0
+        return jnp.where(start, self.q0, q), jnp.where(start, self.p0, p)
 
     def _momentum(self, tau: Array) -> Array:
         dtype = self.p0.dtype
