@@ -165,6 +165,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
                 f"NoExtrapolation() or PreviousStep(); got {self.initial_trajectory!r}"
             )
+        need = self.basis.min_nodes()
+        if self.quadrature.num_nodes < need:
+            raise ValueError(
+                f"{self.basis!r} needs a quadrature with at least {need} nodes; "
+                f"{self.quadrature!r} has {self.quadrature.num_nodes}. With fewer, the step "
+                "equations do not determine the step."
+            )
         if isinstance(self.initial_guess, OGA | OGAReference):
             if not isinstance(self.basis, ShallowNetBasis):
                 raise ValueError(
@@ -272,6 +279,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
         ctx = self._context(terms, t0, t1, y0, args)
+        # diffrax hands `init` the first step `[t0, t0 + dt0]` (clipped to `t1`): a zero or
+        # NaN `dt0` shows up here as a step of zero or NaN length. (diffrax itself refuses a
+        # `dt0` of the wrong sign.)
+        h = eqx.error_if(
+            ctx.h,
+            (ctx.h == 0) | ~jnp.isfinite(ctx.h),
+            "NetworkVI: the step size must be finite and non-zero (check dt0, t0 and t1).",
+        )
+        ctx = eqx.tree_at(lambda c: c.h, ctx, h)
         if isinstance(self.initial_trajectory, PreviousStep):
             theta, _ = self._cold_seed(ctx, None)
         else:

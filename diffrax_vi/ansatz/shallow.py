@@ -16,6 +16,13 @@ from .base import AbstractBasis
 __all__ = ["ShallowNetBasis"]
 
 
+def _network_min_nodes(width: int) -> int:
+    """Nodes a network with `width` output weights needs: each node shows the action the
+    value and the slope of the curve, so `2R >= width` (measured on the harmonic oscillator:
+    width 10 fails with up to 3 nodes; see `tests/test_validation.py`)."""
+    return (width + 1) // 2
+
+
 def _interleave(a: Array, b: Array) -> Array:
     """Rows `a_0, b_0, a_1, b_1, ...` (along axis 0)."""
     return jnp.stack([a, b], axis=1).reshape((-1,) + a.shape[1:])
@@ -142,6 +149,9 @@ class ShallowNetBasis(AbstractBasis):
 
     def check(self, dtype) -> None:
         check_activation(self.activation, dtype)
+
+    def min_nodes(self) -> int:
+        return _network_min_nodes(self.width)
 
     def __repr__(self):
         extra = "" if not self.mirrored else f", symmetry={type(self.symmetry).__name__}()"
