@@ -94,7 +94,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     The Newton solve of each step starts from a seed: a cheap trajectory estimate
     (`initial_trajectory`) fitted by `initial_guess` (the Orthogonal Greedy Algorithm for
     shallow networks), or the previous step's curve continued (`PreviousStep`). A step whose
-    solve does not converge ends the solve with a non-successful `diffrax.RESULTS`.
+    solve does not converge ends the solve with one of the step failures of
+    `diffrax_vi.results` (a `diffrax.RESULTS` member per way of failing); the failed step's
+    time and residual are in the solver state's `report`.
 
     **Arguments:**
 
