@@ -320,6 +320,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
         ctx = self._context(terms, t0, t1, y0, args)
         state = solver_state
+        # `init` checks the first step's length on `h_prev`; this exact `+ 0·h_prev` makes the
+        # step depend on it, so the check is not pruned as dead code.
+        ctx = eqx.tree_at(lambda c: c.h, ctx, ctx.h + 0 * state.h_prev)
         if made_jump is not False:
             state = eqx.tree_at(lambda s: s.history.valid, state, state.history.valid & ~made_jump)
         warm_used = jnp.array(False)

@@ -114,7 +114,10 @@ def test_quadrature_with_too_few_nodes():
         dvi.NetworkVI(dvi.LagrangeBasis(2), dvi.GaussLegendre(1),
                       initial_guess=dvi.LeastSquaresFit())  # fmt: skip
     with pytest.raises(ValueError, match="nodes"):
-        dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(3))
+        dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(4))
+    with pytest.raises(ValueError, match="at least 3 nodes"):
+        dvi.NetworkVI(dvi.DenseNetBasis(dvi.tanh, 4, 6), dvi.GaussLegendre(2),
+                      initial_guess=dvi.LSGD())  # fmt: skip
     # The reference's settings pass.
     dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8))
 
