@@ -83,10 +83,13 @@ class NetworkInterpolation(diffrax.AbstractLocalInterpolation):
         basis = self.basis.at_step(self.t_step, self.h_step)
         q = self.formulation.dense_position(basis, self.theta, self.q0, self.q1, tau)
         p = self._momentum(tau)
-        # The step's start is the accepted state itself (also when this step failed and its
-        # curve is NaN: diffrax saves `t0` from the first step's interpolation).
+        # A failed step's curve is NaN, but its start is the accepted state (diffrax saves
+        # `t0` from the first step's interpolation). Successful steps are left alone, so
+        # derivatives at a step's start are those of the curve.
         start = tau == 0
-        return jnp.where(start, self.q0, q), jnp.where(start, self.p0, p)
+        q = jnp.where(start & ~jnp.all(jnp.isfinite(q)), self.q0, q)
+        p = jnp.where(start & ~jnp.all(jnp.isfinite(p)), self.p0, p)
+        return q, p
 
     def _momentum(self, tau: Array) -> Array:
         dtype = self.p0.dtype
