@@ -14,7 +14,7 @@ from diffrax_vi import problems
 
 STEPS = 3
 SETTINGS = settings(
-    max_examples=12, deadline=None, derandomize=True,
+    max_examples=8, deadline=None, derandomize=True,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )  # fmt: skip
 
@@ -66,6 +66,7 @@ def test_oscillator_never_nan_with_success(oscillator, q0, p0, dt):
     check(oscillator((jnp.array([q0]), jnp.array([p0])), dt))
 
 
+@pytest.mark.long
 @SETTINGS
 @given(
     theta=st.floats(-np.pi, np.pi, **finite),
