@@ -21,11 +21,15 @@ SETTINGS = settings(
 
 def make_run(problem, solver):
     @eqx.filter_jit
-    def run(y0, dt):
+    def jitted(y0, dt):
         return diffrax.diffeqsolve(
             problem.term, solver, 0.0, STEPS * dt, dt, y0, args=problem.args,
             saveat=diffrax.SaveAt(steps=True), throw=False, max_steps=STEPS + 2,
         )  # fmt: skip
+
+    def run(y0, dt):
+        # An array, not a Python float: filter_jit would compile once per step size.
+        return jitted(y0, jnp.asarray(dt, y0[0].dtype))
 
     return run
 
