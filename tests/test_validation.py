@@ -43,10 +43,11 @@ def test_simpson_substeps_not_even():
                        extrapolation_substep=5)  # fmt: skip
 
 
-@pytest.mark.parametrize("dt0", [0.0, float("nan"), float("inf") * 0])
+@pytest.mark.parametrize("dt0", [0.0, float("nan")])
 def test_zero_or_nan_dt0(dt0):
+    # An array, so both cases share one compilation (a Python float is static to the jit).
     with pytest.raises(Exception, match="step size must be finite and non-zero"):
-        solve(dt0=dt0, throw=False).ys[0].block_until_ready()
+        solve(dt0=jnp.asarray(dt0), throw=False).ys[0].block_until_ready()
 
 
 def test_negative_dt0():
