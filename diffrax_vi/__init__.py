@@ -44,6 +44,7 @@ from .oga import (
     oga_fit,
 )
 from .quadrature import GaussLegendre, Simpson
+from .results import StepReport, describe_failure, failure_kind
 from .seeding import (
     LSGD,
     AbstractInitialTrajectory,
@@ -102,6 +103,9 @@ __all__ = [
     "NetworkInterpolation",
     "NetworkVI",
     "NetworkVIState",
+    "StepReport",
+    "describe_failure",
+    "failure_kind",
     "NoExtrapolation",
     "NoSymmetry",
     "NormalEquationsFit",

@@ -200,7 +200,7 @@ class InterpolatingEndpoints(AbstractFormulation):
 
     def fit_targets(self, labels, q0):
         n = labels.shape[0] - 1
-        tau = (jnp.arange(n + 1) / n).astype(labels.dtype)[:, None]
+        tau = (jnp.arange(n + 1, dtype=labels.dtype) / n)[:, None]
         chord = (1 - tau) * q0 + tau * labels[-1]
         return labels - chord, True
 

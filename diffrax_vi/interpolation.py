@@ -82,7 +82,14 @@ class NetworkInterpolation(diffrax.AbstractLocalInterpolation):
         tau = jnp.asarray((t0 - self.t0) / (self.t1 - self.t0), dtype)
         basis = self.basis.at_step(self.t_step, self.h_step)
         q = self.formulation.dense_position(basis, self.theta, self.q0, self.q1, tau)
-        return q, self._momentum(tau)
+        p = self._momentum(tau)
+        # A failed step's curve is NaN, but its start is the accepted state (diffrax saves
+        # `t0` from the first step's interpolation). Successful steps are left alone, so
+        # derivatives at a step's start are those of the curve.
+        start = tau == 0
+        q = jnp.where(start & ~jnp.all(jnp.isfinite(q)), self.q0, q)
+        p = jnp.where(start & ~jnp.all(jnp.isfinite(p)), self.p0, p)
+        return q, p
 
     def _momentum(self, tau: Array) -> Array:
         dtype = self.p0.dtype

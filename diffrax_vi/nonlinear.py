@@ -22,6 +22,12 @@ result. So besides a residual at `ftol`, a step also counts as converged when th
 stopped falling, is below `floor`, and the caller's outputs of interest (passed as the callable
 `options["outputs"]`; `NetworkVI` passes `y ↦ (q_{n+1}, p_{n+1})`) no longer change beyond a
 few ulps. A residual that stops falling anywhere else is a failure.
+
+**How a solve fails.** `optimistix.RESULTS.nonlinear_max_steps_reached` (iteration cap),
+`nonlinear_divergence` (the residual stopped falling, or the line search failed `max_stalls`
+times in a row, above the tolerance), `nonfinite` (NaN/inf in the residual, or everywhere along
+the step) and `singular` (finite residual but a non-finite Newton direction: the linear solve
+broke down). `NetworkVI` turns them into the step failures of `diffrax_vi.results`.
 """
 
 from __future__ import annotations
@@ -176,7 +182,15 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         a_used = jnp.where(ok, a, best_a)
         f_used = jax.lax.cond(ok, lambda: fa, lambda: trial(best_a)[0])
         stalls = jnp.where(ok, 0, state.stalls + 1)
-        new_flat_y = flat_y + a_used * d
+        # A finite residual with a non-finite direction is a broken-down linear solve
+        # (`singular`); a non-finite residual, or one that turns non-finite all along the
+        # direction, is `nonfinite`. Either way the iterate stays at the last finite point,
+        # so the state reports the residual there.
+        f_finite = jnp.all(jnp.isfinite(f))
+        d_finite = jnp.all(jnp.isfinite(d))
+        good = f_finite & d_finite & jnp.isfinite(best_phi)
+        new_flat_y = jnp.where(good, flat_y + a_used * d, flat_y)
+        f_used = jnp.where(good, f_used, f)
         new_y = unravel(new_flat_y)
 
         out = _flat_outputs(options, new_y, dtype)
@@ -184,8 +198,8 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         fmax = jnp.max(jnp.abs(f_used))
         progress = fmax < 0.5 * state.fbest
         idle = jnp.where(progress, 0, state.idle + 1)
-        finite = jnp.all(jnp.isfinite(d)) & jnp.isfinite(best_phi)
-        result = optx.RESULTS.where(finite, state.result, optx.RESULTS.nonfinite)
+        result = optx.RESULTS.where(good, state.result, optx.RESULTS.nonfinite)
+        result = optx.RESULTS.where(f_finite & ~d_finite, optx.RESULTS.singular, result)
         new_state = _DampedNewtonState(
             f=f_used,
             out=out,

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .ansatz.base import AbstractBasis
@@ -25,9 +26,10 @@ from .formulation import (
     stage_values,
 )
 from .interpolation import NetworkInterpolation
-from .nonlinear import LevenbergMarquardt
+from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
 from .oga import OGA, OGA1d, OGAReference
 from .quadrature import AbstractQuadrature, GaussLegendre
+from .results import STEP_FAILURES, StepReport, from_root_find
 from .seeding.fit import AbstractParameterSeed, fit_problem, seed_parameters
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
@@ -57,6 +59,9 @@ class NetworkVIState(eqx.Module):
       seeded by a trajectory fit).
     - `iteration_log`: the iterations of each accepted step, in order, for the first
       `NetworkVI.iteration_log` steps (empty by default).
+    - `report`: how the most recent step's nonlinear solve ended (`StepReport`: start time,
+      length, residual, tolerance, iterations, result). After a failed solve with constant
+      steps this is the failed step; `diffrax_vi.describe_failure(sol)` prints it.
     """
 
     theta: PyTree
@@ -70,6 +75,7 @@ class NetworkVIState(eqx.Module):
     histogram: Array
     warm_starts: Array
     iteration_log: Array
+    report: StepReport
 
 
 class NetworkVI(diffrax.AbstractImplicitSolver):
@@ -88,7 +94,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     The Newton solve of each step starts from a seed: a cheap trajectory estimate
     (`initial_trajectory`) fitted by `initial_guess` (the Orthogonal Greedy Algorithm for
     shallow networks), or the previous step's curve continued (`PreviousStep`). A step whose
-    solve does not converge ends the solve with a non-successful `diffrax.RESULTS`.
+    solve does not converge ends the solve with one of the step failures of
+    `diffrax_vi.results` (a `diffrax.RESULTS` member per way of failing); the failed step's
+    time and residual are in the solver state's `report`.
 
     **Arguments:**
 
@@ -158,6 +166,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             raise TypeError(
                 "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
                 f"NoExtrapolation() or PreviousStep(); got {self.initial_trajectory!r}"
+            )
+        need = self.basis.min_nodes()
+        if self.quadrature.num_nodes < need:
+            raise ValueError(
+                f"{self.basis!r} needs a quadrature with at least {need} nodes; "
+                f"{self.quadrature!r} has {self.quadrature.num_nodes}. With fewer, the step "
+                "equations do not determine the step."
             )
         if isinstance(self.initial_guess, OGA | OGAReference):
             if not isinstance(self.basis, ShallowNetBasis):
@@ -266,6 +281,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
         ctx = self._context(terms, t0, t1, y0, args)
+        # diffrax hands `init` the first step `[t0, t0 + dt0]` (clipped to `t1`): a zero or
+        # NaN `dt0` shows up here as a step of zero or NaN length. (diffrax itself refuses a
+        # `dt0` of the wrong sign.)
+        h = eqx.error_if(
+            ctx.h,
+            (ctx.h == 0) | ~jnp.isfinite(ctx.h),
+            "NetworkVI: the step size must be finite and non-zero (check dt0, t0 and t1).",
+        )
+        ctx = eqx.tree_at(lambda c: c.h, ctx, h)
         if isinstance(self.initial_trajectory, PreviousStep):
             theta, _ = self._cold_seed(ctx, None)
         else:
@@ -283,11 +307,22 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             histogram=jnp.zeros(self.root_find_max_steps + 1, jnp.int32),
             warm_starts=zero,
             iteration_log=jnp.full(self.iteration_log, -1, jnp.int32),
+            report=StepReport(
+                t=ctx.t,
+                h=ctx.h,
+                residual=jnp.zeros((), ctx.q0.dtype),
+                tolerance=jnp.full((), jnp.nan, ctx.q0.dtype),
+                iterations=zero,
+                result=diffrax.RESULTS.successful,
+            ),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
         ctx = self._context(terms, t0, t1, y0, args)
         state = solver_state
+        # `init` checks the first step's length on `h_prev`; this exact `+ 0·h_prev` makes the
+        # step depend on it, so the check is not pruned as dead code.
+        ctx = eqx.tree_at(lambda c: c.h, ctx, ctx.h + 0 * state.h_prev)
         if made_jump is not False:
             state = eqx.tree_at(lambda s: s.history.valid, state, state.history.valid & ~made_jump)
         warm_used = jnp.array(False)
@@ -321,11 +356,20 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         q1, p1 = self.formulation.end_state(x, ctx)
         q1 = q1.astype(ctx.q0.dtype)
         p1 = p1.astype(ctx.p0.dtype)
-        result = diffrax.RESULTS.promote(sol.result)
+        result = from_root_find(sol.result)
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         result = diffrax.RESULTS.where(
-            finite, result, diffrax.RESULTS.promote(optx.RESULTS.nonlinear_divergence)
+            finite | (result != diffrax.RESULTS.successful),
+            result,
+            STEP_FAILURES["vi_step_nonfinite"],
         )
+        # A failed step's end state is never passed off as data: the steps before it stay,
+        # this one is NaN (with `throw=False`), and `report` says where and why it failed.
+        failed = result != diffrax.RESULTS.successful
+        nan = jnp.asarray(jnp.nan, ctx.q0.dtype)
+        q1 = jnp.where(failed, nan, q1)
+        p1 = jnp.where(failed, nan, p1)
+        residual, tolerance = self._final_residual(sol, ctx)
 
         def curve(tau):
             return self.formulation.position(ctx.basis, theta, ctx.q0, q1, tau)
@@ -342,6 +386,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             t_step=ctx.t,
             h_step=ctx.h,
         )
+        for key in ("theta", "f_nodes"):  # dense output of a failed step is NaN too
+            dense_info[key] = jax.tree_util.tree_map(
+                lambda a: jnp.where(failed, jnp.asarray(jnp.nan, a.dtype), a), dense_info[key]
+            )
         # Only Hermite extrapolation reads the previous step's ends; skip the work otherwise.
         history = _history(ctx, curve, q1) if self._uses_history() else state.history
 
@@ -362,12 +410,33 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 if self.iteration_log
                 else state.iteration_log
             ),
+            report=StepReport(
+                t=ctx.t,
+                h=ctx.h,
+                residual=residual,
+                tolerance=tolerance,
+                iterations=n,
+                result=result,
+            ),
         )
         y_error = None
         if self.error_estimate is not None:
             ok = (result == diffrax.RESULTS.successful) & finite
             y_error = self._companion_error(ctx, curve, q1, p1, ok)
         return (q1, p1), y_error, dense_info, new_state, result
+
+    def _final_residual(self, sol, ctx: StepContext) -> tuple[Array, Array]:
+        """`max|F|` where the step's solve stopped, and the residual it needed to reach."""
+        dtype = ctx.q0.dtype
+        if isinstance(self.root_finder, AbstractDampedNewton):
+            f = sol.state.f
+            ftol = self.root_finder._tols(dtype)["ftol"]
+            tolerance = (ftol * _residual_scale(ctx)).astype(dtype)
+        else:
+            f = ravel_pytree(self.formulation.residual(sol.value, ctx))[0]
+            tolerance = jnp.full((), jnp.nan, dtype)
+        residual = jnp.max(jnp.abs(f)).astype(dtype)
+        return jax.lax.stop_gradient(residual), tolerance
 
     def _companion_error(self, ctx: StepContext, curve, q1, p1, ok) -> tuple[Array, Array]:
         """End-state difference to the cGVI of degree `error_estimate` (inf on failure)."""

@@ -182,7 +182,17 @@ class LagrangianTerm(AbstractMechanicalTerm):
             mass = jax.jacfwd(momentum)(v)
             return v - solve(mass, momentum(v) - p)
 
-        return jax.lax.fori_loop(0, self.legendre_iterations, newton, jnp.zeros_like(q))
+        v = jax.lax.fori_loop(0, self.legendre_iterations, newton, jnp.zeros_like(q))
+        # A degenerate Lagrangian (∂²L/∂v² singular) has no velocity map: refuse it loudly
+        # rather than hand NaN velocities to an explicit solver.
+        finite_input = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p))
+        return eqx.error_if(
+            v,
+            finite_input & ~jnp.all(jnp.isfinite(v)),
+            "LagrangianTerm: the Legendre map v -> dL/dv cannot be inverted here (dL^2/dv^2 is "
+            "singular: a degenerate Lagrangian). Explicit diffrax solvers need the velocity; "
+            "integrate degenerate systems with NetworkVI (e.g. as an IODETerm).",
+        )
 
     def energy(self, t, q, p, args):
         """`H(t, q, p) = p·v − L(t, q, v)` with `v` from the inverse Legendre map."""

@@ -67,3 +67,8 @@ class AbstractBasis(eqx.Module):
 
     def check(self, dtype) -> None:
         """Raise `ValueError` if the ansatz cannot work in `dtype`."""
+
+    def min_nodes(self) -> int:
+        """The fewest quadrature nodes with which the step equations of this ansatz still
+        determine the step (`NetworkVI` refuses a rule with fewer)."""
+        return 1

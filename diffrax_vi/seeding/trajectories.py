@@ -234,7 +234,7 @@ class HermiteExtrapolation(AbstractInitialTrajectory):
             return first.labels(term, t, h, q0, p0, args)
         dtype = q0.dtype
         ratio = (h / history.h).astype(dtype)
-        grid = (jnp.arange(self.substeps + 1) / self.substeps).astype(dtype)
+        grid = jnp.arange(self.substeps + 1, dtype=dtype) / self.substeps
 
         def extrapolate():
             v1, f1 = history.v1, history.f1

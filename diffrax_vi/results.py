@@ -1,0 +1,185 @@
+"""Failure results of a variational step, and where to find the details of a failed step.
+
+A failed per-step solve ends `diffrax.diffeqsolve` with one of four members of
+`diffrax.RESULTS`, one per way the nonlinear solve of a step can end without a root:
+
+| member | `failure_kind` | meaning |
+|---|---|---|
+| `RESULTS.vi_step_max_iterations` | `"maxiter"` | the iteration cap `root_find_max_steps` was hit |
+| `RESULTS.vi_step_stalled` | `"diverged"` | the residual stopped falling above the tolerance |
+| `RESULTS.vi_step_nonfinite` | `"nonfinite"` | NaN or inf in the residual or in the end state |
+| `RESULTS.vi_step_singular` | `"singular"` | the linear solve of an iteration broke down |
+
+`diffrax.diffeqsolve` only forwards members of its own `RESULTS`, and only checks results with
+`is_okay`, so the members are registered on `diffrax.RESULTS` itself when `diffrax_vi` is
+imported (equinox enumerations are append-only tables of static messages). With `throw=True`
+the solve raises with the member's message; with `throw=False` `sol.result` is the member, the
+steps before the failed one are kept, and the failed step's end state is NaN (it is never
+passed off as a result).
+
+Equinox messages are static strings, so the time and the residual of the failed step cannot be
+part of them. They are in the solver state instead: `SaveAt(..., solver_state=True)`, then
+`sol.solver_state.report` (a `StepReport`), or `describe_failure(sol)` for one readable line.
+With constant steps the report is that of the failed step; an adaptive controller rejects a
+failed step (its error estimate is infinite) and throws its state away, so the report is then
+that of the last accepted step.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import numpy as np
+import optimistix as optx
+from equinox import _enum  # the enumeration table; see `_register`
+from jaxtyping import Array
+
+__all__ = ["StepReport", "failure_kind", "describe_failure", "from_root_find", "STEP_FAILURES"]
+
+_WHERE = (
+    " The start time, length and residual of the failed step are in the solver state: "
+    "pass saveat=diffrax.SaveAt(..., solver_state=True) and throw=False, then read "
+    "sol.solver_state.report or call diffrax_vi.describe_failure(sol)."
+)
+
+_MESSAGES = {
+    "vi_step_max_iterations": (
+        "diffrax_vi: the nonlinear solve of a step reached root_find_max_steps without "
+        "converging. Try a smaller step, a larger root_find_max_steps or a better seed." + _WHERE
+    ),
+    "vi_step_stalled": (
+        "diffrax_vi: the nonlinear solve of a step stalled: its residual stopped falling "
+        "above the tolerance (no root near the seed). Try a smaller step or another seed." + _WHERE
+    ),
+    "vi_step_nonfinite": (
+        "diffrax_vi: a step produced NaN or inf (in the residual of its nonlinear solve or "
+        "in its end state). Check the Lagrangian at the current state, or reduce the step." + _WHERE
+    ),
+    "vi_step_singular": (
+        "diffrax_vi: the linear solve inside a step's nonlinear solve broke down (singular "
+        "Jacobian). Use LevenbergMarquardt() or a larger regularisation lam." + _WHERE
+    ),
+}
+
+
+def _register(enumeration, name: str, message: str):
+    # `Enumeration` classes keep their members in two class-level tables filled by the
+    # metaclass; a subclass of `diffrax.RESULTS` would not survive `diffeqsolve` (it only
+    # `where`s members of its own class), so the members are added to `diffrax.RESULTS`.
+    # Re-registering the same name keeps its index, so a module reload is harmless.
+    _enum._store(
+        enumeration, name, message, enumeration._name_to_item, enumeration._index_to_message
+    )
+    return getattr(enumeration, name)
+
+
+STEP_FAILURES = {name: _register(diffrax.RESULTS, name, msg) for name, msg in _MESSAGES.items()}
+_KINDS = {
+    "vi_step_max_iterations": "maxiter",
+    "vi_step_stalled": "diverged",
+    "vi_step_nonfinite": "nonfinite",
+    "vi_step_singular": "singular",
+    # The same failures as reported by optimistix/lineax (other root finders, other solvers).
+    "nonlinear_max_steps_reached": "maxiter",
+    "nonlinear_divergence": "diverged",
+    "nonfinite": "nonfinite",
+    "nonfinite_input": "nonfinite",
+    "singular": "singular",
+    "breakdown": "singular",
+    "stagnation": "diverged",
+    "conlim": "singular",
+}
+
+
+def from_root_find(result: optx.RESULTS) -> diffrax.RESULTS:
+    """The step failure (a `diffrax.RESULTS` member) for the result of a step's root find."""
+    r = diffrax.RESULTS.promote(result)
+    table = (
+        ("nonlinear_max_steps_reached", "vi_step_max_iterations"),
+        ("nonlinear_divergence", "vi_step_stalled"),
+        ("stagnation", "vi_step_stalled"),
+        ("nonfinite", "vi_step_nonfinite"),
+        ("nonfinite_input", "vi_step_nonfinite"),
+    )
+    out = diffrax.RESULTS.where(
+        r == diffrax.RESULTS.successful,
+        diffrax.RESULTS.successful,
+        STEP_FAILURES["vi_step_singular"],
+    )
+    for source, target in table:
+        out = diffrax.RESULTS.where(
+            r == getattr(diffrax.RESULTS, source), STEP_FAILURES[target], out
+        )
+    return out
+
+
+def failure_kind(result) -> str | np.ndarray:
+    """Classify a result as `"ok"`, `"maxiter"`, `"singular"`, `"diverged"`, `"nonfinite"` or
+    `"other"` (a failure that is not a step's nonlinear solve, e.g. diffrax's `max_steps`).
+
+    Accepts a `diffrax.RESULTS` or `optimistix.RESULTS` member (e.g. `sol.result`), concrete,
+    not traced. `successful` and `event_occurred` are `"ok"`. A batched result (from `vmap`)
+    gives an array of kinds of the same shape.
+    """
+    enumeration = getattr(result, "_enumeration", None)
+    if enumeration is None or not issubclass(enumeration, optx.RESULTS):
+        raise TypeError(
+            f"failure_kind takes a diffrax or optimistix RESULTS member, got {result!r}"
+        )
+    if result.is_traced():
+        raise ValueError("failure_kind needs a concrete result (call it outside jit)")
+    names = {int(item._value): name for name, item in enumeration._name_to_item.items()}
+
+    def kind(index) -> str:
+        name = names[int(index)]
+        if name in ("successful", "event_occurred"):
+            return "ok"
+        return _KINDS.get(name, "other")
+
+    value = np.asarray(result._value)
+    if value.ndim == 0:
+        return kind(value)
+    return np.vectorize(kind, otypes=[object])(value).astype(str)
+
+
+class StepReport(eqx.Module):
+    """How the nonlinear solve of the most recent step ended (`NetworkVIState.report`).
+
+    - `t`, `h`: start time and length of the step (in the direction of integration).
+    - `residual`: `max|F|` of the step's equations where its solve stopped.
+    - `tolerance`: the residual the solve counted as converged (`ftol·scale`; NaN for root
+      finders that are not `diffrax_vi`'s own).
+    - `iterations`: nonlinear iterations of the step.
+    - `result`: `diffrax.RESULTS.successful` or one of the step failures.
+    """
+
+    t: Array
+    h: Array
+    residual: Array
+    tolerance: Array
+    iterations: Array
+    result: diffrax.RESULTS
+
+
+def describe_failure(sol: diffrax.Solution) -> str | None:
+    """One line on a failed solve of `NetworkVI`, or `None` if it succeeded.
+
+    Names the failure, the step where it happened and its residual, read from
+    `sol.solver_state.report` (the solve needs `SaveAt(..., solver_state=True)`; without it
+    the line says so).
+    """
+    kind = failure_kind(sol.result)
+    if isinstance(kind, np.ndarray):
+        raise ValueError("describe_failure takes one solve, not a batch; index it first")
+    if kind == "ok":
+        return None
+    message = diffrax.RESULTS[sol.result].split(_WHERE)[0]
+    report = getattr(sol.solver_state, "report", None)
+    if not isinstance(report, StepReport):
+        return f"{kind}: {message} (no step report: solve with SaveAt(solver_state=True))"
+    t, h = float(report.t), float(report.h)
+    return (
+        f"{kind}: step [{t:.6g}, {t + h:.6g}] (h = {h:.3g}) stopped at residual "
+        f"{float(report.residual):.3e} (tolerance {float(report.tolerance):.1e}) after "
+        f"{int(report.iterations)} iterations. {message}"
+    )
