@@ -292,11 +292,19 @@ class IODETerm(AbstractMechanicalTerm):
 
     def velocity(self, t, q, p, args):
         if self.velocity_map is None:
-            raise ValueError(
+            # diffeqsolve traces `vf` once for its shapes before any solver runs, so a missing
+            # velocity map must not fail at trace time (NetworkVI never evaluates it). The
+            # predicate is a traced "always true": a solver that really evaluates the vector
+            # field (Tsit5, Dopri8, ...) stops with this error at run time; called eagerly on
+            # concrete values, it raises at once.
+            always = jnp.isnan(jnp.sum(p)) | True
+            return eqx.error_if(
+                jnp.full_like(p, jnp.nan),
+                always,
                 "this IODETerm has no velocity map v(t, q, p, args), so standard diffrax solvers "
                 "(Tsit5, Dopri8, ...) cannot integrate it. Degenerate Lagrangians can only be "
                 "integrated by the variational solvers (NetworkVI); pass velocity=... to "
-                "IODETerm to use a standard solver."
+                "IODETerm to use a standard solver.",
             )
         return self.velocity_map(t, q, p, args)
 

@@ -10,6 +10,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi.terms import (  # noqa: E402
     AbstractMechanicalTerm,
     IODETerm,
@@ -254,12 +255,27 @@ def test_iode_term_maps_and_solve():
 
 def test_iode_term_without_velocity_cannot_use_standard_solver():
     term = _oscillator_iode(velocity=False)
-    with pytest.raises(ValueError, match="velocity map"):
+    with pytest.raises(RuntimeError, match="velocity map"):
         term.velocity(0.0, jnp.zeros(1), jnp.zeros(1), None)
-    with pytest.raises(ValueError, match="velocity map"):
+    with pytest.raises(RuntimeError, match="velocity map"):
         _tsit5(term, (jnp.array([0.5]), jnp.array([0.0])))
     # its momentum and force remain available for the variational solvers
     np.testing.assert_allclose(term.momentum(0.0, jnp.ones(1), jnp.ones(1), None), [2.0])
+
+
+def test_iode_term_without_velocity_is_integrated_by_network_vi():
+    # diffeqsolve traces the vector field for its shapes before the first step; a term with
+    # no velocity map must pass that check, since NetworkVI never evaluates the map.
+    term = _oscillator_iode(velocity=False)
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8))
+    ts = jnp.linspace(0.0, 1.0, 11)
+    sol = diffrax.diffeqsolve(
+        term, solver, 0.0, 1.0, 0.1, (jnp.array([0.5]), jnp.array([0.0])),
+        saveat=diffrax.SaveAt(ts=ts),
+    )
+    assert sol.result == diffrax.RESULTS.successful
+    exact = 0.5 * np.cos(np.sqrt(1.5) * np.asarray(ts))
+    np.testing.assert_allclose(sol.ys[0][:, 0], exact, atol=1e-10)
 
 
 def test_iode_term_without_hamiltonian_has_no_energy():
