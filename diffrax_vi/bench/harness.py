@@ -392,6 +392,7 @@ def long_time_energy(
     t0, t1 = problem.t0, problem.t1
     saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
     rows: list[dict[str, Any]] = []
+    runners: dict[tuple, _DiffraxRunner] = {}
     for entry, value in runs:
         start = len(rows)
         if progress is not None:
@@ -408,7 +409,10 @@ def long_time_energy(
             else:
                 fixed = isinstance(entry, Fixed)
                 max_steps = int(value) if fixed else adaptive_max_steps
-                runner = _DiffraxRunner(problem, entry, max_steps, saveat)
+                key = (id(entry), max_steps)
+                if key not in runners:  # tolerances are traced: one compilation per entry
+                    runners[key] = _DiffraxRunner(problem, entry, max_steps, saveat)
+                runner = runners[key]
                 # compile on a short span (same shapes), then time the whole horizon
                 if fixed:
                     short_t1 = t0 + (t1 - t0) / value
