@@ -69,11 +69,15 @@ def run_work_precision(args) -> None:
         plan.append((name, setting, entries, steps, rtols))
     total = sum(len(v) for *_, s, r in plan for v in (*s.values(), *r.values()))
     bar = _progress(total, "work-precision", not args.no_progress)
+    rows: list = []
     for _, setting, entries, steps, rtols in plan:
-        work_precision(setting.make(), entries, steps=steps, rtols=rtols,
-                       repeats=args.repeats, csv_path=path, progress=bar)
+        rows += work_precision(setting.make(), entries, steps=steps, rtols=rtols,
+                               repeats=args.repeats, csv_path=path, progress=bar)
     if bar is not None:
         bar.close()
+    from .report import ratio_markdown, ratio_table
+
+    print(ratio_markdown(ratio_table(rows)))
 
 
 def run_energy(args) -> None:
@@ -109,9 +113,12 @@ def run_stability(args) -> None:
         cases = quick_grid(problems) if problems else quick_grid()
     path = os.path.join(args.out, CSV["stability"])
     bar = _progress(len(cases), "stability", not args.no_progress)
-    stability_sweep(cases, csv_path=path, progress=bar)
+    rows = stability_sweep(cases, csv_path=path, progress=bar)
     if bar is not None:
         bar.close()
+    from .report import stability_table
+
+    print(stability_table(rows))
 
 
 def write_report(out: str, command: str = "") -> str:

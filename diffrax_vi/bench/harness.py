@@ -348,7 +348,6 @@ def work_precision(
                     row.update(_diffrax_metrics(problem, entry, sol))
                     row.update(wall_s=wall, compile_s=compile_s, repeats=n)
                     ts, q, p = _trajectory(sol)
-                    compile_s = 0.0
                 row["t_end"] = float(ts[-1])
                 reached = math.isclose(float(ts[-1]), t1, rel_tol=1e-9, abs_tol=1e-12)
                 if row["status"] == "ok" and reached:
