@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test test-fast test-long lint bench docs clean
+.PHONY: setup demo test test-fast test-long lint bench bench-quick bench-full docs clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -44,6 +44,14 @@ docs: $(STAMP) /usr/bin/chromium
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/step_cost.py
+
+# Work-precision, long-time energy and stability sweep (docs/benchmarks.md); results and
+# figures go to benchmarks/results (quick) or benchmarks/results-full (full, hours).
+bench-quick: $(STAMP)
+	$(BIN)/python -m diffrax_vi.bench all --quick --out benchmarks/results
+
+bench-full: $(STAMP)
+	$(BIN)/python -m diffrax_vi.bench all --full --out benchmarks/results-full
 
 clean:
 	rm -rf $(VENV) build dist site *.egg-info .pytest_cache .ruff_cache tests/artifacts

@@ -1,0 +1,237 @@
+"""Command line: `python -m diffrax_vi.bench COMMAND [--quick | --full] [--out DIR]`.
+
+Commands:
+
+- `work-precision`: final error and energy error against wall time, every peer and problem;
+- `energy`: energy error over a long horizon (NetworkVI on fixed steps, Tsit5 and Dopri8 at
+  several tolerances, so that one of them matches NetworkVI's cost);
+- `stability`: the reference's stress sweep of NetworkVI (status per case, rates per
+  precision next to the reference's);
+- `report`: rebuild `report.md` and the figures from the CSVs in `--out`;
+- `all`: the three studies, then the report.
+
+Every study streams its rows to a CSV in `--out` as they are measured, so an interrupted run
+keeps its partial results. float64 is switched on here (the library itself never does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import jax
+
+CSV = {
+    "work-precision": "work_precision.csv",
+    "energy": "long_time_energy.csv",
+    "stability": "stability.csv",
+}
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, file=sys.stderr, dynamic_ncols=True)
+
+
+def _problems(args, settings) -> list[str]:
+    names = args.problems or list(settings)
+    unknown = [n for n in names if n not in settings]
+    if unknown:
+        raise SystemExit(f"unknown problem(s) {unknown}; choose from {sorted(settings)}")
+    return names
+
+
+def _fresh(path: str) -> str:
+    if os.path.exists(path):
+        os.remove(path)
+    return path
+
+
+def run_work_precision(args) -> None:
+    from .harness import work_precision
+    from .suites import SETTINGS, networkvi_entries, peer_entries, sweeps
+
+    names = _problems(args, SETTINGS)
+    path = _fresh(os.path.join(args.out, CSV["work-precision"]))
+    plan = []
+    for name in names:
+        setting = SETTINGS[name]
+        entries = networkvi_entries(setting, args.full) + peer_entries(args.full)
+        if args.solvers:
+            entries = [e for e in entries if any(s in e.name for s in args.solvers)]
+        steps, rtols = sweeps(name, entries, args.full)
+        plan.append((name, setting, entries, steps, rtols))
+    total = sum(len(v) for *_, s, r in plan for v in (*s.values(), *r.values()))
+    bar = _progress(total, "work-precision", not args.no_progress)
+    rows: list = []
+    for _, setting, entries, steps, rtols in plan:
+        rows += work_precision(setting.make(), entries, steps=steps, rtols=rtols,
+                               repeats=args.repeats, csv_path=path, progress=bar)
+    if bar is not None:
+        bar.close()
+    from .report import ratio_markdown, ratio_table
+
+    print(ratio_markdown(ratio_table(rows)))
+
+
+def run_energy(args) -> None:
+    from .harness import Adaptive, long_time_energy
+    from .suites import SETTINGS, networkvi_entries, peer_entries
+
+    names = _problems(args, SETTINGS)
+    path = _fresh(os.path.join(args.out, CSV["energy"]))
+    rtols = (1e-8, 1e-10, 1e-12) if args.quick else (1e-6, 1e-8, 1e-10, 1e-12, 1e-14)
+    peers = [e for e in peer_entries(False) if isinstance(e, Adaptive)
+             and e.name in ("Tsit5", "Dopri8")]
+    bar = _progress(len(names) * (1 + len(peers) * len(rtols)), "energy", not args.no_progress)
+    for name in names:
+        setting = SETTINGS[name]
+        n = args.long_steps.get(name, args.long_steps["default"])
+        problem = setting.make()
+        problem = problem.with_span(problem.t0 + n * setting.long_dt)
+        ours = networkvi_entries(setting, False)[0]
+        runs = [(ours, n)] + [(p, r) for p in peers for r in rtols]
+        long_time_energy(problem, runs, csv_path=path, progress=bar,
+                         adaptive_max_steps=args.adaptive_max_steps)
+    if bar is not None:
+        bar.close()
+
+
+def run_stability(args) -> None:
+    from .stability import full_grid, quick_grid, stability_sweep
+
+    problems = args.problems or None
+    if args.full:
+        cases = full_grid(problems) if problems else full_grid()
+    else:
+        cases = quick_grid(problems) if problems else quick_grid()
+    path = os.path.join(args.out, CSV["stability"])
+    bar = _progress(len(cases), "stability", not args.no_progress)
+    rows = stability_sweep(cases, csv_path=path, progress=bar)
+    if bar is not None:
+        bar.close()
+    from .report import stability_table
+
+    print(stability_table(rows))
+
+
+def write_report(out: str, command: str = "") -> str:
+    """Assemble `report.md` and the PNG figures from the CSVs found in `out`."""
+    from . import report
+    from .harness import read_rows
+
+    parts = ["# diffrax_vi benchmark report", ""]
+    if command:
+        parts += [f"Command: `{command}`", ""]
+    parts += [
+        f"Machine: {platform.platform()}, python {platform.python_version()}, jax "
+        f"{jax.__version__} ({jax.default_backend()}), os.cpu_count() = {os.cpu_count()}.",
+        "",
+    ]
+    wp = os.path.join(out, CSV["work-precision"])
+    if os.path.exists(wp):
+        rows = read_rows(wp)
+        report.plot_work_precision(rows, os.path.join(out, "work_precision.png"))
+        parts += [
+            "## Work-precision", "",
+            "Wall time (median after compilation) against the relative error of the final "
+            "`q`. ![work-precision](work_precision.png)", "",
+            "### Time at equal final error (log-log interpolation on each solver's front)", "",
+            report.ratio_markdown(report.ratio_table(rows)), "",
+            "### All points", "", report.work_precision_table(rows), "",
+        ]
+    en = os.path.join(out, CSV["energy"])
+    if os.path.exists(en):
+        rows = read_rows(en)
+        report.plot_energy(rows, os.path.join(out, "long_time_energy.png"))
+        parts += [
+            "## Long-time energy", "",
+            "Running maximum of `|H − H₀|/|H₀|` over the step ends. "
+            "![energy](long_time_energy.png)", "",
+            report.energy_table(rows), "",
+            report.equal_cost_markdown(rows), "",
+        ]
+    st = os.path.join(out, CSV["stability"])
+    if os.path.exists(st):
+        rows = read_rows(st)
+        report.plot_convergence_heatmap(rows, os.path.join(out, "stability_heatmap.png"))
+        parts += [
+            "## Stability sweep", "",
+            "Converged = status `ok`; `maxiter` and failures count as not converged. The "
+            "reference's rates are from its quick run (problems_and_benchmarks §2.6). "
+            "![heatmap](stability_heatmap.png)", "",
+            report.stability_table(rows), "",
+        ]
+    text = "\n".join(parts)
+    with open(os.path.join(out, "report.md"), "w") as f:
+        f.write(text)
+    return text
+
+
+def _long_steps(text: str) -> dict[str, int]:
+    out = {"default": 10_000}
+    for item in text.split(","):
+        if not item:
+            continue
+        if "=" in item:
+            k, v = item.split("=")
+            out[k] = int(float(v))
+        else:
+            out["default"] = int(float(item))
+    return out
+
+
+def main(argv=None) -> None:
+    jax.config.update("jax_enable_x64", True)
+    parser = argparse.ArgumentParser(
+        prog="python -m diffrax_vi.bench", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("command", choices=["work-precision", "energy", "stability", "report",
+                                            "all"])
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true", help="the quick grids (default)")
+    mode.add_argument("--full", action="store_true", help="the full grids (hours)")
+    parser.add_argument("--out", default="benchmarks/results", help="output folder")
+    parser.add_argument("--problems", nargs="*", help="subset of problems")
+    parser.add_argument("--solvers", nargs="*", help="substrings of solver names to keep")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help="timing repeats after compilation (quick 2, full 5)")
+    parser.add_argument("--long-steps", type=_long_steps, default=None,
+                        help="NetworkVI steps of the energy runs: N or name=N,... "
+                             "(default: 1e5 for the harmonic oscillator, 1e4 otherwise)")
+    parser.add_argument("--adaptive-max-steps", type=int, default=2**19)
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    args.quick = not args.full
+    if args.repeats is None:
+        args.repeats = 5 if args.full else 2
+    if args.long_steps is None:
+        args.long_steps = {"default": 10_000, "harmonic_oscillator": 100_000}
+    os.makedirs(args.out, exist_ok=True)
+    command = "python -m diffrax_vi.bench " + " ".join(sys.argv[1:] if argv is None else argv)
+    start = time.perf_counter()
+    todo = ["work-precision", "energy", "stability"] if args.command == "all" else [args.command]
+    runners = {"work-precision": run_work_precision, "energy": run_energy,
+               "stability": run_stability}
+    for name in todo:
+        if name in runners:
+            t, cpu = time.perf_counter(), time.process_time()
+            runners[name](args)
+            # CPU time approximates the wall time on an unshared machine (compilation and
+            # these small solves are essentially single-threaded).
+            print(f"{name}: {time.perf_counter() - t:.0f} s wall, "
+                  f"{time.process_time() - cpu:.0f} s CPU", file=sys.stderr)
+    write_report(args.out, command)
+    print(f"total {time.perf_counter() - start:.0f} s; report in {args.out}/report.md",
+          file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,493 @@
+"""Work-precision and long-time energy measurements of mechanical solvers on a `Problem`.
+
+A benchmark entry says how to run one solver:
+
+- `Fixed(name, solver)`: a diffrax solver (`NetworkVI`, `CGVI`, `SemiImplicitEuler`, ...) on
+  constant steps; its sweep parameter is the number of steps over the problem's span.
+- `Adaptive(name, solver)`: a diffrax solver with `PIDController(rtol, atol = atol_ratio·rtol)`;
+  the sweep parameter is `rtol`.
+- `SciPy(name, method)`: `scipy.integrate.solve_ivp` (e.g. `"DOP853"`); sweep parameter `rtol`.
+
+All runs of one entry on one problem share one compilation: the end time, the step size and the
+tolerances are traced arguments of a single `eqx.filter_jit`-ed `diffeqsolve`. Every run is
+isolated: an exception becomes a row with status `error:<ExceptionName>`.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import statistics
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..problems import Problem
+from .status import classify
+
+__all__ = [
+    "Fixed",
+    "Adaptive",
+    "SciPy",
+    "Entry",
+    "work_precision",
+    "long_time_energy",
+    "relative_error",
+    "write_rows",
+    "read_rows",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Fixed:
+    """A diffrax solver on constant steps (sweep parameter: steps over the span).
+
+    **Arguments:**
+
+    - `name`: label in the tables and plots.
+    - `solver`: the diffrax solver, e.g. `NetworkVI(...)`, `CGVI(7)`, `SemiImplicitEuler()`.
+    - `separable`: integrate the pair `term.separable_terms(y0)` (for `SemiImplicitEuler`);
+      a problem that is not separable is skipped with status `error:NotSeparable`.
+    - `family`: `"ours"` for the NetworkVI variants, `"peer"` for the others (the reports
+      compare the best of each).
+    """
+
+    name: str
+    solver: diffrax.AbstractSolver
+    separable: bool = False
+    family: str = "peer"
+    kind = "fixed"
+    parameter = "steps"
+
+
+@dataclasses.dataclass(frozen=True)
+class Adaptive:
+    """A diffrax solver with `PIDController(rtol, atol=atol_ratio * rtol)` (sweep: `rtol`)."""
+
+    name: str
+    solver: diffrax.AbstractSolver
+    atol_ratio: float = 1e-2
+    family: str = "peer"
+    kind = "adaptive"
+    parameter = "rtol"
+
+
+@dataclasses.dataclass(frozen=True)
+class SciPy:
+    """`scipy.integrate.solve_ivp(method=...)` with `atol = atol_ratio * rtol` (sweep: `rtol`).
+
+    The right-hand side is the problem's NumPy vector field when it carries one (the problems
+    with a stored or DOP853 reference), else the term's Hamilton equations jitted by JAX and
+    called once per evaluation.
+    """
+
+    name: str = "scipy DOP853"
+    method: str = "DOP853"
+    atol_ratio: float = 1e-2
+    family: str = "peer"
+    kind = "scipy"
+    parameter = "rtol"
+
+
+Entry = Fixed | Adaptive | SciPy
+
+
+class NotSeparable(ValueError):
+    """The problem's Lagrangian is not `T(v) − V(q)`, so a split solver cannot run it."""
+
+
+# -- measurements -----------------------------------------------------------------------------
+def relative_error(q: np.ndarray, q_ref: np.ndarray) -> float:
+    """`max|q − q_ref| / max|q_ref|` (absolute when `q_ref = 0`): the reference's `ref_err`."""
+    q = np.asarray(q, np.float64)
+    q_ref = np.asarray(q_ref, np.float64)
+    scale = float(np.max(np.abs(q_ref)))
+    err = float(np.max(np.abs(q - q_ref)))
+    return err / scale if scale > 0 else err
+
+
+def _energy_fn(problem: Problem) -> Callable:
+    def energy(ts, qs, ps):
+        return jax.vmap(lambda t, q, p: problem.energy(t, q, p))(ts, qs, ps)
+
+    return jax.jit(energy)
+
+
+def _energy_errors(problem: Problem, energy, ts, qs, ps) -> np.ndarray:
+    """`|H(t) − H(t0)| / |H(t0)|` along a trajectory, evaluated in float64."""
+    h = np.asarray(energy(jnp.asarray(ts, jnp.float64), jnp.asarray(qs, jnp.float64),
+                          jnp.asarray(ps, jnp.float64)))
+    q0, p0 = (jnp.asarray(x, jnp.float64) for x in problem.y0)
+    h0 = float(problem.energy(jnp.asarray(problem.t0, jnp.float64), q0, p0))
+    return np.abs(h - h0) / (abs(h0) if h0 != 0 else 1.0)
+
+
+def _timed(fn, *args):
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - start
+
+
+def _repeat(fn, args, repeats: int, budget_s: float):
+    """Run once to compile, then up to `repeats` more times (stopping when over budget)."""
+    out, first = _timed(fn, *args)
+    times = []
+    for _ in range(repeats):
+        out, elapsed = _timed(fn, *args)
+        times.append(elapsed)
+        if sum(times) > budget_s:
+            break
+    wall = statistics.median(times) if times else first
+    return out, wall, max(first - wall, 0.0), len(times)
+
+
+class _DiffraxRunner:
+    """One compiled `diffeqsolve` per (entry, problem, max_steps), reused across the sweep."""
+
+    def __init__(self, problem: Problem, entry: Fixed | Adaptive, max_steps: int, saveat):
+        self.problem = problem
+        self.entry = entry
+        self.max_steps = max_steps
+        term = problem.term
+        if isinstance(entry, Fixed) and entry.separable:
+            try:
+                term = term.separable_terms(problem.y0, problem.args, t0=problem.t0)
+            except (ValueError, NotImplementedError) as e:
+                raise NotSeparable(f"{problem.name}: {e}") from e
+        solver = entry.solver
+        t0 = problem.t0
+        args = problem.args
+
+        if isinstance(entry, Fixed):
+
+            @eqx.filter_jit
+            def solve(y0, t1, dt):
+                return diffrax.diffeqsolve(
+                    term, solver, t0, t1, dt, y0, args=args, saveat=saveat,
+                    stepsize_controller=diffrax.ConstantStepSize(), max_steps=max_steps,
+                    throw=False,
+                )
+
+        else:
+
+            @eqx.filter_jit
+            def solve(y0, t1, rtol, atol):
+                controller = diffrax.PIDController(rtol=rtol, atol=atol)
+                return diffrax.diffeqsolve(
+                    term, solver, t0, t1, None, y0, args=args, saveat=saveat,
+                    stepsize_controller=controller, max_steps=max_steps, throw=False,
+                )
+
+        self.solve = solve
+
+    def arguments(self, t1: float, value: float):
+        f64 = jnp.float64
+        if isinstance(self.entry, Fixed):
+            return (self.problem.y0, jnp.asarray(t1, f64),
+                    jnp.asarray((t1 - self.problem.t0) / value, f64))
+        return (self.problem.y0, jnp.asarray(t1, f64), jnp.asarray(value, f64),
+                jnp.asarray(value * self.entry.atol_ratio, f64))
+
+
+def _iteration_cap(solver) -> int | None:
+    return getattr(solver, "root_find_max_steps", None)
+
+
+def _diffrax_metrics(problem, entry, sol) -> dict[str, Any]:
+    status = classify(sol, iteration_cap=_iteration_cap(getattr(entry, "solver", None)))
+    stats = sol.stats
+    row: dict[str, Any] = dict(
+        status=status,
+        steps=int(stats["num_accepted_steps"]),
+        rejected=int(stats.get("num_rejected_steps", 0)),
+    )
+    state = sol.solver_state
+    iterations = getattr(state, "iterations", None)
+    if iterations is not None:
+        row["iterations"] = int(iterations)
+        row["max_step_iterations"] = int(state.max_iterations)
+    return row
+
+
+def _trajectory(sol) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ts = np.asarray(sol.ts)
+    keep = np.isfinite(ts)
+    q, p = (np.asarray(x)[keep] for x in sol.ys)
+    return ts[keep], q, p
+
+
+def _closed_form_rhs(problem: Problem) -> Callable | None:
+    """NumPy Hamilton equations of the problems whose reference needs none."""
+    if problem.name == "harmonic_oscillator":
+        m, k = problem.params["m"], problem.params["k"]
+        return lambda y: np.concatenate([y[1:] / m, -k * y[:1]])
+    if problem.name == "kepler":
+
+        def kepler(y):
+            q, p = y[:2], y[2:]
+            return np.concatenate([p, -q / np.sqrt(q @ q) ** 3])
+
+        return kepler
+    return None
+
+
+def _numpy_rhs(problem: Problem) -> tuple[Callable, str]:
+    rhs = getattr(problem.reference_flow, "rhs", None) or _closed_form_rhs(problem)
+    if rhs is not None:
+        return (lambda t, y: rhs(y)), "numpy"
+    term, args = problem.term, problem.args
+    d = problem.dim
+
+    @jax.jit
+    def vf(t, y):
+        v, f = term.vf(t, (y[:d], y[d:]), args)
+        return jnp.concatenate([v, f])
+
+    return (lambda t, y: np.asarray(vf(t, jnp.asarray(y)))), "jax"
+
+
+def _scipy_run(problem: Problem, entry: SciPy, t1: float, rtol: float, repeats: int,
+               budget_s: float, t_eval=None):
+    from scipy.integrate import solve_ivp
+
+    fun, _ = _numpy_rhs(problem)
+    y0 = np.concatenate([np.asarray(x, np.float64) for x in problem.y0])
+    kwargs = dict(method=entry.method, rtol=rtol, atol=rtol * entry.atol_ratio, t_eval=t_eval)
+    fun(problem.t0, y0)  # compile the JAX fallback outside the timing
+    times = []
+    res = None
+    for _ in range(max(repeats, 1)):
+        start = time.perf_counter()
+        res = solve_ivp(fun, (problem.t0, t1), y0, **kwargs)
+        times.append(time.perf_counter() - start)
+        if sum(times) > budget_s:
+            break
+    return res, statistics.median(times), len(times)
+
+
+# -- work-precision ---------------------------------------------------------------------------
+def _values_for(entry: Entry, values: Sequence[float] | Mapping[str, Sequence[float]] | None):
+    if isinstance(values, Mapping):
+        return values.get(entry.name)
+    return values
+
+
+def work_precision(
+    problem: Problem,
+    solvers: Sequence[Entry],
+    *,
+    steps: Sequence[int] | Mapping[str, Sequence[int]] | None = None,
+    rtols: Sequence[float] | Mapping[str, Sequence[float]] | None = None,
+    repeats: int = 3,
+    budget_s: float = 20.0,
+    adaptive_max_steps: int = 100_000,
+    csv_path: str | None = None,
+    progress: Any = None,
+) -> list[dict[str, Any]]:
+    """Final error, energy error and cost of each solver over a sweep, on `problem`'s span.
+
+    For each solver and each sweep value, one row with: `problem`, `solver`, `family`,
+    `parameter` (`"steps"` or `"rtol"`) and `value`, `status` (see `classify`), `steps`
+    taken, `rejected`, `t_end` reached, `error` (`relative_error` of the final `q` against
+    `problem.reference`), `energy_error` (max over the step ends of `|H − H₀|/|H₀|`, in
+    float64), `wall_s` (median over `repeats` runs after compilation, fewer when the runs
+    exceed `budget_s`), `compile_s` (first call minus `wall_s`), `repeats`, and for
+    `NetworkVI` the nonlinear `iterations` (total) and `max_step_iterations`.
+
+    **Arguments:**
+
+    - `problem`: the `Problem`; its `t0`, `t1` and `y0` (dtype included) set the run.
+    - `solvers`: `Fixed`, `Adaptive` and `SciPy` entries.
+    - `steps`: step counts over the span for the `Fixed` entries (one list, or a mapping from
+      entry name to its own list).
+    - `rtols`: relative tolerances for `Adaptive` and `SciPy` entries (same forms).
+    - `repeats`, `budget_s`: timing repeats after the compiling call, and the time after which
+      an entry stops repeating a point.
+    - `adaptive_max_steps`: step budget of the adaptive runs.
+    - `csv_path`: if given, rows are appended to this CSV as they are measured.
+    - `progress`: a `tqdm`-like object with `update(n)` and `set_postfix_str(s)`, or `None`.
+    """
+    energy = _energy_fn(problem)
+    t1 = problem.t1
+    q_ref = problem.reference(np.array([t1]))[0][0]
+    saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
+    rows: list[dict[str, Any]] = []
+    for entry in solvers:
+        sweep = _values_for(entry, steps if isinstance(entry, Fixed) else rtols) or ()
+        runner = None
+        for value in sweep:
+            if progress is not None:
+                progress.set_postfix_str(f"{problem.name}: {entry.name} {value:g}")
+            row: dict[str, Any] = dict(
+                problem=problem.name, solver=entry.name, family=entry.family,
+                parameter=entry.parameter, value=value,
+            )
+            try:
+                if isinstance(entry, SciPy):
+                    res, wall, n = _scipy_run(problem, entry, t1, value, repeats, budget_s)
+                    d = problem.dim
+                    ts, q, p = res.t, res.y[:d].T, res.y[d:].T
+                    row.update(status=classify(res), steps=len(res.t) - 1, rejected=None,
+                               wall_s=wall, compile_s=0.0, repeats=n, nfev=res.nfev)
+                else:
+                    max_steps = (
+                        int(max(sweep)) if isinstance(entry, Fixed) else adaptive_max_steps
+                    )
+                    if runner is None:
+                        runner = _DiffraxRunner(problem, entry, max_steps, saveat)
+                    sol, wall, compile_s, n = _repeat(
+                        runner.solve, runner.arguments(t1, value), repeats, budget_s
+                    )
+                    row.update(_diffrax_metrics(problem, entry, sol))
+                    row.update(wall_s=wall, compile_s=compile_s, repeats=n)
+                    ts, q, p = _trajectory(sol)
+                row["t_end"] = float(ts[-1])
+                reached = math.isclose(float(ts[-1]), t1, rel_tol=1e-9, abs_tol=1e-12)
+                if row["status"] == "ok" and reached:
+                    row["error"] = relative_error(q[-1], q_ref)
+                    row["energy_error"] = float(np.max(_energy_errors(problem, energy, ts, q,
+                                                                      p)))
+                elif row["status"] == "ok":
+                    row["status"] = "error:EndNotReached"
+            except Exception as e:  # one failing run never stops the sweep
+                row["status"] = classify(e)
+                row["message"] = str(e).splitlines()[0][:200] if str(e) else ""
+            rows.append(row)
+            if csv_path is not None:
+                write_rows([row], csv_path, append=True)
+            if progress is not None:
+                progress.update(1)
+            if isinstance(row.get("status"), str) and row["status"].startswith("error:Not"):
+                break  # e.g. not separable: every value would fail the same way
+    return rows
+
+
+# -- long-time energy --------------------------------------------------------------------------
+def long_time_energy(
+    problem: Problem,
+    runs: Sequence[tuple[Entry, float]],
+    *,
+    samples: int = 40,
+    adaptive_max_steps: int = 2**20,
+    csv_path: str | None = None,
+    progress: Any = None,
+) -> list[dict[str, Any]]:
+    """Energy error over the problem's (long) span, sampled on a logarithmic time grid.
+
+    Each run is `(entry, value)`: a `Fixed` entry with its number of steps, or an adaptive /
+    scipy entry with its `rtol`. Every step end is kept; the row for sample time `t` holds
+    `energy_error`, the largest `|H − H₀|/|H₀|` over the steps up to `t` (a bounded error
+    levels off, a drift keeps growing), and each row repeats the run's `wall_s` (one run after a
+    compiling call on a short span), `steps` and `status`.
+    """
+    energy = _energy_fn(problem)
+    t0, t1 = problem.t0, problem.t1
+    saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
+    rows: list[dict[str, Any]] = []
+    runners: dict[tuple, _DiffraxRunner] = {}
+    for entry, value in runs:
+        start = len(rows)
+        if progress is not None:
+            progress.set_postfix_str(f"{problem.name}: {entry.name} {value:g} (long)")
+        base = dict(problem=problem.name, solver=entry.name, family=entry.family,
+                    parameter=entry.parameter, value=value, horizon=t1 - t0)
+        try:
+            if isinstance(entry, SciPy):
+                res, wall, _ = _scipy_run(problem, entry, t1, value, 1, 0.0)
+                d = problem.dim
+                ts, q, p = res.t, res.y[:d].T, res.y[d:].T
+                meta = dict(status=classify(res), steps=len(ts) - 1, wall_s=wall,
+                            compile_s=0.0)
+            else:
+                fixed = isinstance(entry, Fixed)
+                max_steps = int(value) if fixed else adaptive_max_steps
+                key = (id(entry), max_steps)
+                if key not in runners:  # tolerances are traced: one compilation per entry
+                    runners[key] = _DiffraxRunner(problem, entry, max_steps, saveat)
+                runner = runners[key]
+                # compile on a short span (same shapes), then time the whole horizon
+                if fixed:
+                    short_t1 = t0 + (t1 - t0) / value
+                    dt = jnp.asarray((t1 - t0) / value, jnp.float64)
+                    short = (problem.y0, jnp.asarray(short_t1, jnp.float64), dt)
+                    full = (problem.y0, jnp.asarray(t1, jnp.float64), dt)
+                else:
+                    short_t1 = t0 + (t1 - t0) * 1e-4
+                    short = runner.arguments(short_t1, value)
+                    full = runner.arguments(t1, value)
+                _, compile_s = _timed(runner.solve, *short)
+                sol, wall = _timed(runner.solve, *full)
+                meta = _diffrax_metrics(problem, entry, sol)
+                meta.update(wall_s=wall, compile_s=compile_s)
+                ts, q, p = _trajectory(sol)
+            err = _energy_errors(problem, energy, ts, q, p)
+            envelope = np.maximum.accumulate(np.where(np.isfinite(err), err, np.inf))
+            first = ts[1] if len(ts) > 1 else t1
+            grid = np.geomspace(first - t0, ts[-1] - t0, samples) + t0
+            index = np.clip(np.searchsorted(ts, grid, side="right") - 1, 0, len(ts) - 1)
+            meta["t_end"] = float(ts[-1])
+            for t, k in zip(grid, index, strict=True):
+                rows.append(dict(base, **meta, t=float(t), energy_error=float(envelope[k])))
+        except Exception as e:
+            rows.append(dict(base, status=classify(e), message=str(e).splitlines()[0][:200]))
+        if csv_path is not None:
+            write_rows(rows[start:], csv_path, append=True)
+        if progress is not None:
+            progress.update(1)
+    return rows
+
+
+# -- CSV ---------------------------------------------------------------------------------------
+COLUMNS = (
+    "problem", "solver", "family", "parameter", "value", "status", "steps", "rejected",
+    "t_end", "error", "energy_error", "wall_s", "compile_s", "repeats", "iterations",
+    "max_step_iterations", "nfev", "horizon", "t", "message",
+)
+
+
+def write_rows(rows: Iterable[Mapping[str, Any]], path, *, append: bool = False,
+               columns: Sequence[str] | None = None) -> None:
+    """Write rows to a CSV (header written when the file is new or not appending)."""
+    import os
+
+    rows = list(rows)
+    if columns is None:
+        columns = list(COLUMNS)
+        for r in rows:
+            columns += [k for k in r if k not in columns]
+    new = not append or not os.path.exists(path) or os.path.getsize(path) == 0
+    if not new:  # keep the existing header's order
+        with open(path, newline="") as f:
+            header = next(csv.reader(f), None)
+        if header:
+            columns = header
+    with open(path, "a" if append else "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
+        if new:
+            writer.writeheader()
+        for r in rows:
+            writer.writerow({k: ("" if v is None else v) for k, v in r.items()})
+        f.flush()
+
+
+def read_rows(path) -> list[dict[str, Any]]:
+    """Read a CSV written by `write_rows`, turning numeric fields back into numbers."""
+
+    def convert(v: str):
+        if v == "":
+            return None
+        try:
+            x = float(v)
+        except ValueError:
+            return v
+        return int(x) if x.is_integer() and "." not in v and "e" not in v.lower() else x
+
+    with open(path, newline="") as f:
+        return [{k: convert(v) for k, v in r.items()} for r in csv.DictReader(f)]

@@ -1,0 +1,337 @@
+"""Tables and figures from the rows of `work_precision`, `long_time_energy` and
+`stability_sweep`: markdown tables, PNG plots (matplotlib, imported only here), and the cost of
+each solver at a given final error, read off its work-precision curve."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+from .stability import REFERENCE_RATES, convergence_rates
+
+__all__ = [
+    "time_at_error",
+    "ratio_table",
+    "work_precision_table",
+    "energy_table",
+    "stability_table",
+    "markdown",
+    "plot_work_precision",
+    "plot_energy",
+    "plot_convergence_heatmap",
+]
+
+
+def _fmt(x: Any, spec: str = ".2e") -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "–"
+    if isinstance(x, float | int) and not isinstance(x, bool):
+        return format(x, spec)
+    return str(x)
+
+
+def markdown(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """A markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+# -- cost at equal error -----------------------------------------------------------------------
+def _front(rows: Iterable[dict]) -> list[tuple[float, float]]:
+    """(wall, error) of the successful points, cheapest first, keeping only points that are
+    more accurate than every cheaper one (the Pareto front of the work-precision curve)."""
+    pts = sorted(
+        (r["wall_s"], r["error"]) for r in rows
+        if r.get("status") == "ok" and r.get("error") is not None and r.get("wall_s")
+        and r["error"] > 0
+    )
+    front: list[tuple[float, float]] = []
+    for wall, err in pts:
+        if not front or err < front[-1][1]:
+            front.append((wall, err))
+    return front
+
+
+def time_at_error(rows: Iterable[dict], target: float) -> tuple[float | None, str]:
+    """Wall time needed to reach final error `target`, log-log interpolated on the solver's
+    work-precision front. Returns `(time, how)`: `how` is `"interpolated"`, `"at most"` (the
+    cheapest point is already more accurate than `target`: its time is an upper bound) or
+    `"unreachable"` (no point reaches `target`; time `None`)."""
+    front = _front(rows)
+    if not front or front[-1][1] > target:
+        return None, "unreachable"
+    if front[0][1] <= target:
+        return front[0][0], "at most"
+    for (w0, e0), (w1, e1) in zip(front, front[1:], strict=False):
+        if e1 <= target <= e0:
+            s = (math.log(target) - math.log(e0)) / (math.log(e1) - math.log(e0))
+            return math.exp(math.log(w0) + s * (math.log(w1) - math.log(w0))), "interpolated"
+    return None, "unreachable"  # pragma: no cover - the front is monotone
+
+
+def ratio_table(rows: Sequence[dict], targets: Sequence[float] = (1e-8, 1e-12)) -> list[dict]:
+    """Per problem and target error: the best of our solvers (`family == "ours"`), the best
+    peer, their times at that error and the ratio ours / peer (< 1: ours is faster)."""
+    out = []
+    for problem in dict.fromkeys(r["problem"] for r in rows):
+        prow = [r for r in rows if r["problem"] == problem]
+        for target in targets:
+            best: dict[str, tuple] = {}
+            for solver in dict.fromkeys(r["solver"] for r in prow):
+                srows = [r for r in prow if r["solver"] == solver]
+                t, how = time_at_error(srows, target)
+                if t is None:
+                    continue
+                family = srows[0]["family"]
+                if family not in best or t < best[family][1]:
+                    best[family] = (solver, t, how)
+            ours, peer = best.get("ours"), best.get("peer")
+            out.append(dict(
+                problem=problem, target=target,
+                ours=ours[0] if ours else None, ours_s=ours[1] if ours else None,
+                ours_how=ours[2] if ours else "unreachable",
+                peer=peer[0] if peer else None, peer_s=peer[1] if peer else None,
+                peer_how=peer[2] if peer else "unreachable",
+                ratio=(ours[1] / peer[1]) if ours and peer else None,
+            ))
+    return out
+
+
+# -- tables ------------------------------------------------------------------------------------
+def work_precision_table(rows: Sequence[dict]) -> str:
+    """All work-precision points as a markdown table."""
+    header = ["problem", "solver", "param", "status", "steps", "error", "energy err",
+              "wall ms", "compile s", "iterations"]
+    body = [
+        (r["problem"], r["solver"], f"{r['parameter']}={_fmt(r['value'], 'g')}", r["status"],
+         _fmt(r.get("steps"), "d") if isinstance(r.get("steps"), int) else _fmt(r.get("steps")),
+         _fmt(r.get("error")), _fmt(r.get("energy_error")),
+         _fmt(None if r.get("wall_s") is None else 1e3 * r["wall_s"], ".3g"),
+         _fmt(r.get("compile_s"), ".1f"), _fmt(r.get("iterations"), "d"))
+        for r in rows
+    ]
+    return markdown(header, body)
+
+
+def ratio_markdown(ratios: Sequence[dict]) -> str:
+    """`ratio_table` as markdown."""
+    def t(s, how):
+        if s is None:
+            return "unreachable"
+        return ("≤ " if how == "at most" else "") + f"{1e3 * s:.3g} ms"
+
+    body = [
+        (r["problem"], f"{r['target']:.0e}", r["ours"] or "–", t(r["ours_s"], r["ours_how"]),
+         r["peer"] or "–", t(r["peer_s"], r["peer_how"]), _fmt(r["ratio"], ".3g"))
+        for r in ratios
+    ]
+    return markdown(["problem", "final error", "NetworkVI (best)", "time", "best peer", "time",
+                     "ratio NetworkVI / peer"], body)
+
+
+def energy_table(rows: Sequence[dict]) -> str:
+    """Per problem and run of `long_time_energy`: cost, steps and the energy error at the end."""
+    last: dict[tuple, dict] = {}
+    for r in rows:
+        last[(r["problem"], r["solver"], r["value"])] = r
+    body = [
+        (r["problem"], r["solver"], f"{r['parameter']}={_fmt(r['value'], 'g')}",
+         _fmt(r.get("horizon"), "g"), r.get("status"), _fmt(r.get("steps"), "d"),
+         _fmt(r.get("wall_s"), ".3g"), _fmt(r.get("energy_error")))
+        for r in last.values()
+    ]
+    return markdown(["problem", "solver", "param", "horizon", "status", "steps", "wall s",
+                     "max energy error"], body)
+
+
+def stability_table(rows: Sequence[dict]) -> str:
+    """Convergence per precision next to the reference's quick run, then per problem and
+    solver."""
+    rates = convergence_rates(rows, "dtype")
+    body = []
+    for dtype in ("float16", "float32", "float64"):
+        if dtype not in rates:
+            continue
+        r = rates[dtype]
+        ref = REFERENCE_RATES[dtype]
+        body.append((dtype, r["cases"], r["converged"], f"{100 * r['rate']:.0f} %",
+                     f"{100 * ref[0] / ref[1]:.0f} % ({ref[0]}/{ref[1]})", r["measured"],
+                     _fmt(r["ref_err"]), _fmt(r["ham_drift"]), _fmt(r["iterations"], "g")))
+    text = markdown(["precision", "cases", "converged", "rate", "reference rate", "measured",
+                     "median ref_err", "median ham_drift", "median iter"], body)
+    statuses = sorted({r["status"] for r in rows})
+    per = []
+    for problem in dict.fromkeys(r["problem"] for r in rows):
+        for solver in dict.fromkeys(r["solver"] for r in rows):
+            rs = [r for r in rows if r["problem"] == problem and r["solver"] == solver]
+            if rs:
+                per.append((problem, solver, *(sum(r["status"] == s for r in rs)
+                                               for s in statuses)))
+    text += "\n\nStatus counts per problem and nonlinear solver:\n\n"
+    text += markdown(["problem", "solver", *statuses], per)
+    best = []
+    for problem in dict.fromkeys(r["problem"] for r in rows):
+        rs = [r for r in rows if r["problem"] == problem and r["status"] in ("ok", "maxiter")
+              and r.get("ref_err") is not None]
+        if rs:
+            b = min(rs, key=lambda r: r["ref_err"])
+            best.append((problem, _fmt(b["ref_err"]), b["dtype"], _fmt(b["dt"], "g"),
+                         f"R{b['nodes']} S{b['width']} {b['activation']}", b["solver"],
+                         b["status"]))
+    text += "\n\nBest configuration per problem (lowest ref_err over measured cases):\n\n"
+    text += markdown(["problem", "ref_err", "precision", "dt", "network", "solver", "status"],
+                     best)
+    return text
+
+
+# -- plots -------------------------------------------------------------------------------------
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _grid(n: int):
+    cols = min(n, 3)
+    rows = math.ceil(n / cols)
+    return rows, cols
+
+
+def plot_work_precision(rows: Sequence[dict], path) -> None:
+    """Wall time against final error, one panel per problem, one line per solver."""
+    plt = _pyplot()
+    problems = list(dict.fromkeys(r["problem"] for r in rows))
+    nr, nc = _grid(len(problems))
+    fig, axes = plt.subplots(nr, nc, figsize=(5 * nc, 4 * nr), squeeze=False)
+    for ax, problem in zip(axes.flat, problems, strict=False):
+        for solver in dict.fromkeys(r["solver"] for r in rows if r["problem"] == problem):
+            pts = sorted((r["error"], r["wall_s"]) for r in rows
+                         if r["problem"] == problem and r["solver"] == solver
+                         and r.get("status") == "ok" and r.get("error"))
+            if not pts:
+                continue
+            fam = next(r["family"] for r in rows if r["solver"] == solver)
+            ax.loglog(*zip(*pts, strict=True), "o-" if fam == "ours" else ".--", label=solver,
+                      lw=2 if fam == "ours" else 1)
+        ax.set_title(problem)
+        ax.set_xlabel("final error (relative, q)")
+        ax.set_ylabel("wall time after compilation [s]")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in axes.flat[len(problems):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def plot_energy(rows: Sequence[dict], path) -> None:
+    """Running maximum of the relative energy error against time, per problem."""
+    plt = _pyplot()
+    problems = list(dict.fromkeys(r["problem"] for r in rows))
+    nr, nc = _grid(len(problems))
+    fig, axes = plt.subplots(nr, nc, figsize=(5 * nc, 4 * nr), squeeze=False)
+    for ax, problem in zip(axes.flat, problems, strict=False):
+        runs = dict.fromkeys((r["solver"], r["value"]) for r in rows if r["problem"] == problem)
+        for solver, value in runs:
+            pts = [(r["t"], r["energy_error"]) for r in rows
+                   if r["problem"] == problem and r["solver"] == solver and r["value"] == value
+                   and r.get("t") is not None and r.get("energy_error")]
+            if not pts:
+                continue
+            wall = next(r.get("wall_s") for r in rows if r["problem"] == problem
+                        and r["solver"] == solver and r["value"] == value)
+            label = f"{solver} ({_fmt(value, 'g')}; {_fmt(wall, '.3g')} s)"
+            ax.loglog(*zip(*pts, strict=True), label=label)
+        ax.set_title(problem)
+        ax.set_xlabel("t")
+        ax.set_ylabel("max |H − H₀| / |H₀| so far")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in axes.flat[len(problems):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def plot_convergence_heatmap(rows: Sequence[dict], path) -> None:
+    """Convergence rate (ok / cases) per nonlinear solver × precision, one panel per problem
+    and one for all problems together."""
+    plt = _pyplot()
+    problems = list(dict.fromkeys(r["problem"] for r in rows))
+    solvers = list(dict.fromkeys(r["solver"] for r in rows))
+    dtypes = [d for d in ("float16", "float32", "float64") if any(r["dtype"] == d for r in rows)]
+    panels = [*problems, "all problems"]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 2.2 + 0.4 * len(solvers)),
+                             squeeze=False)
+    for ax, panel in zip(axes.flat, panels, strict=True):
+        rs = rows if panel == "all problems" else [r for r in rows if r["problem"] == panel]
+        grid = np.full((len(solvers), len(dtypes)), np.nan)
+        for i, s in enumerate(solvers):
+            for j, d in enumerate(dtypes):
+                sel = [r for r in rs if r["solver"] == s and r["dtype"] == d]
+                if sel:
+                    grid[i, j] = sum(r["status"] == "ok" for r in sel) / len(sel)
+        ax.imshow(grid, vmin=0, vmax=1, cmap="viridis", aspect="auto")
+        for i in range(len(solvers)):
+            for j in range(len(dtypes)):
+                if not np.isnan(grid[i, j]):
+                    ax.text(j, i, f"{100 * grid[i, j]:.0f}%", ha="center", va="center",
+                            color="w" if grid[i, j] < 0.6 else "k")
+        ax.set_xticks(range(len(dtypes)), dtypes)
+        ax.set_yticks(range(len(solvers)), solvers if ax is axes.flat[0] else [""] * len(solvers))
+        ax.set_title(panel, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def equal_cost(rows: Sequence[dict], peers: Sequence[str] = ("Tsit5", "Dopri8")) -> list[dict]:
+    """Per problem of `long_time_energy`: the NetworkVI run and, for each peer, the run whose
+    wall time is closest (in ratio) to NetworkVI's, with their final energy errors."""
+    last: dict[tuple, dict] = {}
+    for r in rows:
+        last[(r["problem"], r["solver"], r["value"])] = r
+    out = []
+    for problem in dict.fromkeys(r["problem"] for r in rows):
+        runs = [r for (p, _, _), r in last.items() if p == problem]
+        ours = [r for r in runs if r.get("family") == "ours" and r.get("wall_s")]
+        for o in ours:
+            entry = dict(problem=problem, ours=o["solver"], steps=o.get("steps"),
+                         horizon=o.get("horizon"), ours_s=o["wall_s"], ours_status=o["status"],
+                         ours_energy=o.get("energy_error"))
+            for peer in peers:
+                cands = [r for r in runs if r["solver"] == peer and r.get("status") == "ok"
+                         and r.get("wall_s")]
+                if not cands:
+                    entry[peer] = None
+                    continue
+                best = min(cands, key=lambda r: abs(math.log(r["wall_s"] / o["wall_s"])))
+                entry[peer] = dict(rtol=best["value"], wall_s=best["wall_s"],
+                                   energy=best.get("energy_error"), steps=best.get("steps"))
+            out.append(entry)
+    return out
+
+
+def equal_cost_markdown(rows: Sequence[dict], peers: Sequence[str] = ("Tsit5", "Dopri8")) -> str:
+    """`equal_cost` as markdown."""
+    body = []
+    for e in equal_cost(rows, peers):
+        cells = [e["problem"], f"{_fmt(e['steps'], 'd')} steps, T = {_fmt(e['horizon'], 'g')}",
+                 f"{_fmt(e['ours_s'], '.3g')} s", f"{_fmt(e['ours_energy'])} ({e['ours_status']})"]
+        for p in peers:
+            c = e.get(p)
+            cells.append("–" if c is None else
+                         f"{_fmt(c['energy'])} (rtol {c['rtol']:.0e}, {c['wall_s']:.3g} s)")
+        body.append(cells)
+    return "Energy error at the end, NetworkVI against each peer's run of the closest cost:\n\n" + \
+        markdown(["problem", "NetworkVI run", "NetworkVI time", "NetworkVI energy error",
+                  *(f"{p} (closest cost)" for p in peers)], body)

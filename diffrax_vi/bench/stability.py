@@ -1,0 +1,294 @@
+"""The reference's numerical-stability sweep (problems_and_benchmarks §2) for `NetworkVI`.
+
+Each case integrates exactly `steps` (10) steps of size `dt` over `(0, steps·dt)` in one working
+precision and records, as the reference's benchmark does:
+
+- `status` (`classify`; `maxiter` and failures count as not converged),
+- `ref_err`: relative max-norm error of the final `q` against the problem's float64 reference
+  (closed form, stored, or DOP853 at `rtol = 1e-13`; the reference used Gauss(8) at the
+  smallest `dt`),
+- `ham_drift`: `max_n |H_n − H_0| / |H_0|` over the step ends, evaluated in float64,
+- `iterations`: nonlinear iterations of the final step, and `total_s`: wall time of the run
+  including compilation (cases that differ only in `dt` share one compilation).
+
+The reference's "DogLeg" and "Newton/Backtracking" solvers map to our `LevenbergMarquardt`
+(a trust-region-like damped Gauss–Newton) and `RegularisedNewton` (the reference's `J + λI`
+Newton with Armijo backtracking), both with `λ = 16·sqrt(eps(T))` by default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import problems as _problems
+from ..activations import elu, gelu, relu_k, tanh
+from ..ansatz.shallow import ShallowNetBasis
+from ..nonlinear import LevenbergMarquardt, RegularisedNewton
+from ..quadrature import GaussLegendre
+from ..seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
+from ..solver import NetworkVI
+from .harness import relative_error, write_rows
+from .status import classify, converged
+
+__all__ = [
+    "StabilityCase",
+    "quick_grid",
+    "full_grid",
+    "run_case",
+    "stability_sweep",
+    "convergence_rates",
+    "REFERENCE_RATES",
+]
+
+# The reference's quick run (problems_and_benchmarks §2.6): converged / cases per precision.
+REFERENCE_RATES = {"float16": (9, 36), "float32": (29, 36), "float64": (15, 36)}
+
+ACTIVATIONS = {
+    "gelu": gelu,
+    "tanh": tanh,
+    "elu": elu,
+    "relu2": relu_k(2),
+    "relu3": relu_k(3),
+    "relu4": relu_k(4),
+}
+INITIAL_GUESSES = {
+    "midpoint": IntegratorExtrapolation,
+    "hermite": HermiteExtrapolation,
+    "previous": NoExtrapolation,
+}
+SOLVERS = {"LevenbergMarquardt": LevenbergMarquardt, "RegularisedNewton": RegularisedNewton}
+PROBLEMS = {
+    "harmonic_oscillator": _problems.harmonic_oscillator,
+    "pendulum": _problems.pendulum,
+    "double_pendulum": _problems.double_pendulum,
+    "toda_lattice": _problems.toda_lattice,
+}
+# Per-problem quick settings of the reference (§2.3): network width S and quadrature nodes R.
+QUICK_WIDTH = {"harmonic_oscillator": 10, "pendulum": 8, "double_pendulum": 10, "toda_lattice": 8}
+QUICK_NODES = {"harmonic_oscillator": 8, "pendulum": 8, "double_pendulum": 16, "toda_lattice": 16}
+
+
+@dataclasses.dataclass(frozen=True)
+class StabilityCase:
+    """One case of the sweep.
+
+    **Fields:** `problem` (a key of `PROBLEMS`), `dt`, `dtype` (`"float16"`, `"float32"`,
+    `"float64"`), `nodes` (Gauss–Legendre nodes R), `width` (S), `activation` (a key of
+    `ACTIVATIONS`), `solver` (a key of `SOLVERS`), `lam` (`None`: `16·sqrt(eps(T))`),
+    `initial_guess` (a key of `INITIAL_GUESSES`), `steps` (10), `max_iterations` (the
+    per-step iteration cap).
+    """
+
+    problem: str
+    dt: float
+    dtype: str
+    nodes: int
+    width: int
+    activation: str
+    solver: str
+    lam: float | None = None
+    initial_guess: str = "midpoint"
+    steps: int = 10
+    max_iterations: int = 100
+
+    def __post_init__(self):
+        for field, table in (("problem", PROBLEMS), ("activation", ACTIVATIONS),
+                             ("solver", SOLVERS), ("initial_guess", INITIAL_GUESSES)):
+            if getattr(self, field) not in table:
+                raise ValueError(
+                    f"unknown {field} {getattr(self, field)!r}; choose from {sorted(table)}"
+                )
+        if self.dtype not in ("float16", "float32", "float64"):
+            raise ValueError(f"dtype must be float16, float32 or float64; got {self.dtype!r}")
+        if not self.dt > 0 or self.steps < 1 or self.max_iterations < 1:
+            raise ValueError(f"dt, steps and max_iterations must be positive: {self!r}")
+
+    @property
+    def lam_value(self) -> float:
+        """λ: the given one, or the reference's `16·sqrt(eps(T))`."""
+        if self.lam is not None:
+            return self.lam
+        return float(16 * np.sqrt(np.finfo(np.dtype(self.dtype)).eps))
+
+    def solver_key(self) -> tuple:
+        """Cases with equal keys share one compilation (they differ only in `dt`)."""
+        return (self.problem, self.dtype, self.nodes, self.width, self.activation,
+                self.solver, self.lam_value, self.initial_guess, self.steps,
+                self.max_iterations)
+
+    def build(self) -> NetworkVI:
+        """The configured `NetworkVI`."""
+        root_finder = SOLVERS[self.solver](lam=self.lam_value)
+        return NetworkVI(
+            ShallowNetBasis(ACTIVATIONS[self.activation], self.width),
+            GaussLegendre(self.nodes),
+            initial_trajectory=INITIAL_GUESSES[self.initial_guess](),
+            root_finder=root_finder,
+            root_find_max_steps=self.max_iterations,
+        )
+
+
+def quick_grid(
+    problems: Sequence[str] = ("harmonic_oscillator", "pendulum", "double_pendulum"),
+    *,
+    dts: Sequence[float] = (0.1, 1.0, 10.0),
+    dtypes: Sequence[str] = ("float64", "float32", "float16"),
+    activations: Sequence[str] = ("gelu", "tanh"),
+    solvers: Sequence[str] = ("LevenbergMarquardt", "RegularisedNewton"),
+    max_iterations: int = 100,
+) -> list[StabilityCase]:
+    """The reference's quick grid: 3 dt × 3 precisions × 2 activations × 2 solvers per problem
+    (36 cases), with its per-problem S and R, λ = 16·sqrt(eps(T)) and the midpoint guess."""
+    return [
+        StabilityCase(p, dt, T, QUICK_NODES[p], QUICK_WIDTH[p], a, s,
+                      max_iterations=max_iterations)
+        for p, T, a, s, dt in itertools.product(problems, dtypes, activations, solvers, dts)
+    ]
+
+
+def full_grid(
+    problems: Sequence[str] = ("harmonic_oscillator", "pendulum", "double_pendulum",
+                               "toda_lattice"),
+    max_iterations: int = 1000,
+) -> list[StabilityCase]:
+    """The reference's full grid: dt ∈ {0.01, 0.1, 1, 10} × 3 precisions × R ∈ {4, 8, 16} ×
+    S ∈ {4, 6, 8} × 6 activations × 2 solvers × λ ∈ {0, 1e-7, 1e-5, 1e-3, 16·sqrt(eps)} ×
+    3 initial guesses (12 960 cases per problem; hours)."""
+    lams = (0.0, 1e-7, 1e-5, 1e-3, None)
+    return [
+        StabilityCase(p, dt, T, r, s, a, sv, lam, g, max_iterations=max_iterations)
+        for p, T, r, s, a, sv, lam, g, dt in itertools.product(
+            problems, ("float64", "float32", "float16"), (4, 8, 16), (4, 6, 8), ACTIVATIONS,
+            SOLVERS, lams, INITIAL_GUESSES, (0.01, 0.1, 1.0, 10.0),
+        )
+    ]
+
+
+class _Compiled:
+    """A compiled 10-step solve for one `solver_key`; `dt` enters through `StepTo`'s times."""
+
+    def __init__(self, case: StabilityCase):
+        self.problem = PROBLEMS[case.problem](dtype=np.dtype(case.dtype))
+        solver = case.build()
+        term, args = self.problem.term, self.problem.args
+        steps = case.steps
+
+        @eqx.filter_jit
+        def solve(y0, ts):
+            return diffrax.diffeqsolve(
+                term, solver, ts[0], ts[-1], None, y0, args=args,
+                saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
+                stepsize_controller=diffrax.StepTo(ts), max_steps=steps, throw=False,
+            )
+
+        self.solve = solve
+
+        def energy(ts, qs, ps):
+            return jax.vmap(lambda t, q, p: self.problem.energy(t, q, p))(ts, qs, ps)
+
+        self.energy = jax.jit(energy)
+
+
+def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
+    """Run one case (never raises: an exception becomes status `error:<Name>`)."""
+    row: dict[str, Any] = dataclasses.asdict(case)
+    row["lam"] = case.lam_value
+    start = time.perf_counter()
+    try:
+        cache = {} if cache is None else cache
+        key = case.solver_key()
+        if key not in cache:
+            cache.clear()  # keep one compiled solve alive at a time
+            cache[key] = _Compiled(case)
+        compiled = cache[key]
+        problem = compiled.problem
+        dtype = np.dtype(case.dtype)
+        ts64 = problem.t0 + case.dt * np.arange(case.steps + 1, dtype=np.float64)
+        sol = jax.block_until_ready(compiled.solve(problem.y0, jnp.asarray(ts64, dtype)))
+        row["total_s"] = time.perf_counter() - start
+        row["status"] = classify(sol, iteration_cap=case.max_iterations)
+        state = sol.solver_state
+        row["iterations"] = int(state.last_iterations)
+        row["steps_done"] = int(state.steps)
+        ts = np.asarray(sol.ts)
+        keep = np.isfinite(ts)
+        qs, ps = (np.asarray(x, np.float64)[keep] for x in sol.ys)
+        if row["status"] in ("ok", "maxiter") and keep.sum() == case.steps + 1:
+            q_ref = problem.reference(ts64[-1:])[0][0]
+            row["ref_err"] = relative_error(qs[-1], q_ref)
+            f64 = jnp.float64
+            h = np.asarray(compiled.energy(jnp.asarray(ts64, f64), jnp.asarray(qs, f64),
+                                           jnp.asarray(ps, f64)))
+            row["ham_drift"] = float(np.max(np.abs(h - h[0])) / abs(h[0]))
+    except Exception as e:  # every case is isolated
+        row["total_s"] = time.perf_counter() - start
+        row["status"] = classify(e)
+        row["message"] = str(e).splitlines()[0][:200] if str(e) else ""
+    return row
+
+
+SWEEP_COLUMNS = (
+    "problem", "dt", "dtype", "nodes", "width", "activation", "solver", "lam", "initial_guess",
+    "steps", "max_iterations", "status", "ref_err", "ham_drift", "iterations", "steps_done",
+    "total_s", "message",
+)
+
+
+def stability_sweep(
+    cases: Iterable[StabilityCase],
+    *,
+    csv_path: str | None = None,
+    progress: Any = None,
+) -> list[dict[str, Any]]:
+    """Run every case (grouped so that cases sharing a compilation run together), appending
+    each row to `csv_path` as soon as it is measured. `progress` is a tqdm-like object."""
+    cases = sorted(cases, key=lambda c: (repr(c.solver_key()), c.dt))
+    if csv_path is not None:
+        write_rows([], csv_path, columns=SWEEP_COLUMNS)
+    cache: dict = {}
+    rows = []
+    for case in cases:
+        if progress is not None:
+            progress.set_postfix_str(
+                f"{case.problem} {case.dtype} {case.activation} {case.solver} dt={case.dt:g}"
+            )
+        row = run_case(case, cache)
+        rows.append(row)
+        if csv_path is not None:
+            write_rows([row], csv_path, append=True, columns=SWEEP_COLUMNS)
+        if progress is not None:
+            progress.update(1)
+    return rows
+
+
+def convergence_rates(rows: Iterable[dict[str, Any]], by: str = "dtype") -> dict[str, dict]:
+    """Per value of `by`: cases, converged (`ok` only), measured (`ok` + `maxiter`), the rate,
+    and medians of `ref_err`, `ham_drift`, `iterations` over the measured cases."""
+    groups: dict[str, list] = {}
+    for r in rows:
+        groups.setdefault(str(r[by]), []).append(r)
+    out = {}
+    for key, rs in sorted(groups.items()):
+        measured = [r for r in rs if r["status"] in ("ok", "maxiter")]
+
+        def median(field, measured=measured):
+            xs = [r[field] for r in measured if r.get(field) is not None]
+            return float(np.median(xs)) if xs else None
+
+        ok = sum(converged(r["status"]) for r in rs)
+        out[key] = dict(
+            cases=len(rs), converged=ok, rate=ok / len(rs), measured=len(measured),
+            ref_err=median("ref_err"), ham_drift=median("ham_drift"),
+            iterations=median("iterations"),
+        )
+    return out

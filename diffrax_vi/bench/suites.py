@@ -1,0 +1,120 @@
+"""The published benchmark configurations (`--quick` and `--full`): problems, spans, solvers
+and sweeps. Everything here is float64."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+
+import diffrax
+import jax.numpy as jnp
+
+from .. import problems as _problems
+from ..activations import gelu, tanh
+from ..ansatz.shallow import ShallowNetBasis
+from ..methods import CGVI
+from ..quadrature import GaussLegendre
+from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep
+from ..solver import NetworkVI
+from .harness import Adaptive, Entry, Fixed, SciPy
+
+__all__ = ["Setting", "SETTINGS", "PEERS_ADAPTIVE", "networkvi_entries", "peer_entries"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """How one problem is benchmarked.
+
+    - `make`: builds the float64 `Problem` with the work-precision span.
+    - `width`, `nodes`: the NetworkVI network width S and Gauss–Legendre nodes R.
+    - `steps`: step counts of the fixed-step sweeps (NetworkVI, CGVI) over the span.
+    - `sie_steps`: step counts of `SemiImplicitEuler` (first order, so many more).
+    - `long_dt`: the step of the long-time energy runs.
+    """
+
+    make: Callable
+    width: int
+    nodes: int
+    steps: tuple[int, ...]
+    sie_steps: tuple[int, ...]
+    long_dt: float
+
+
+def _f64(make, **kw):
+    return lambda: make(dtype=jnp.float64, **kw)
+
+
+SETTINGS: dict[str, Setting] = {
+    "harmonic_oscillator": Setting(
+        _f64(_problems.harmonic_oscillator, t1=10.0), 10, 8, (10, 20, 40, 100),
+        (100, 1000, 10_000, 100_000), 0.25),
+    "pendulum": Setting(
+        _f64(_problems.pendulum, t1=10.0), 8, 8, (20, 40, 100), (100, 1000, 10_000), 0.1),
+    "double_pendulum": Setting(
+        _f64(_problems.double_pendulum, t1=2.0), 10, 16, (20, 40, 100),
+        (100, 1000, 10_000), 0.05),
+    "toda_lattice": Setting(
+        _f64(_problems.toda_lattice, t1=10.0), 8, 16, (20, 50, 100),
+        (100, 1000, 10_000, 100_000), 0.1),
+    "henon_heiles": Setting(
+        _f64(_problems.henon_heiles, t1=10.0), 10, 8, (20, 50, 100),
+        (100, 1000, 10_000, 100_000), 0.1),
+    "kepler": Setting(
+        _f64(_problems.kepler, eccentricity=0.5, t1=2 * math.pi), 10, 8, (32, 64, 128),
+        (1000, 10_000, 100_000), 2 * math.pi / 64),
+}
+
+QUICK_RTOLS = (1e-4, 1e-6, 1e-8, 1e-10, 1e-12)
+FULL_RTOLS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12, 1e-13)
+PEERS_ADAPTIVE = ("Tsit5", "Dopri8")
+
+
+def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
+    """NetworkVI variants: quick has one (tanh, warm start from the previous step); full adds
+    the reference's per-step seed (midpoint trajectory + OGA) and a GELU network."""
+    basis = ShallowNetBasis(tanh, setting.width)
+    quad = GaussLegendre(setting.nodes)
+    out = [Fixed(f"NetworkVI tanh{setting.width} R{setting.nodes} warm",
+                 NetworkVI(basis, quad, initial_trajectory=PreviousStep()), family="ours")]
+    if full:
+        out += [
+            Fixed(f"NetworkVI tanh{setting.width} R{setting.nodes} OGA",
+                  NetworkVI(basis, quad, initial_trajectory=IntegratorExtrapolation()),
+                  family="ours"),
+            Fixed(f"NetworkVI gelu{setting.width} R{setting.nodes} warm",
+                  NetworkVI(ShallowNetBasis(gelu, setting.width), quad,
+                            initial_trajectory=PreviousStep()), family="ours"),
+        ]
+    return out
+
+
+def peer_entries(full: bool) -> list[Entry]:
+    """The peers: diffrax Tsit5, Dopri8, Kvaerno5 (PID), SemiImplicitEuler (separable problems
+    only), scipy DOP853, and our polynomial CGVI (degree 7 on Gauss–Legendre(8), order 14)."""
+    out: list[Entry] = [
+        Adaptive("Tsit5", diffrax.Tsit5()),
+        Adaptive("Dopri8", diffrax.Dopri8()),
+        Adaptive("Kvaerno5", diffrax.Kvaerno5()),
+        Fixed("SemiImplicitEuler", diffrax.SemiImplicitEuler(), separable=True),
+        SciPy("scipy DOP853", "DOP853"),
+        Fixed("CGVI(7)", CGVI(7, GaussLegendre(8))),
+    ]
+    if full:
+        out.append(Fixed("CGVI(4)", CGVI(4)))
+    return out
+
+
+def sweeps(name: str, entries: Sequence[Entry], full: bool) -> tuple[dict, dict]:
+    """Step counts and tolerances per entry for a problem."""
+    setting = SETTINGS[name]
+    steps, rtols = {}, {}
+    for e in entries:
+        if isinstance(e, Fixed):
+            base = setting.sie_steps if e.separable else setting.steps
+            if full and not e.separable:
+                base = tuple(sorted({*base, *(2 * s for s in base), max(base) * 4}))
+            steps[e.name] = base
+        else:
+            rtols[e.name] = FULL_RTOLS if full else QUICK_RTOLS
+    return steps, rtols

@@ -1,0 +1,197 @@
+"""The benchmark harness (`diffrax_vi.bench`): status classification, cost at equal error, and
+smoke runs of every study on tiny grids (CSV, markdown and PNG written to `tmp_path`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import diffrax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import diffrax_vi as dvi
+from diffrax_vi import problems
+from diffrax_vi.bench import (
+    STATUSES,
+    Adaptive,
+    Fixed,
+    SciPy,
+    StabilityCase,
+    classify,
+    convergence_rates,
+    long_time_energy,
+    quick_grid,
+    read_rows,
+    report,
+    stability_sweep,
+    work_precision,
+)
+from diffrax_vi.bench.__main__ import main as cli_main
+
+
+@dataclasses.dataclass
+class _FakeSolution:
+    result: object
+    ys: tuple = (np.zeros((2, 1)), np.zeros((2, 1)))
+    ts: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 1.0]))
+    solver_state: object = None
+
+
+@dataclasses.dataclass
+class _State:
+    max_iterations: int
+
+
+@pytest.mark.parametrize(
+    "member, expected",
+    [
+        (diffrax.RESULTS.successful, "ok"),
+        (diffrax.RESULTS.promote(optx.RESULTS.nonlinear_max_steps_reached), "maxiter"),
+        (diffrax.RESULTS.promote(optx.RESULTS.nonlinear_divergence), "diverged"),
+        (diffrax.RESULTS.promote(optx.RESULTS.nonfinite), "nonfinite"),
+        (diffrax.RESULTS.promote(optx.RESULTS.singular), "singular"),
+        (diffrax.RESULTS.max_steps_reached, "error:max_steps_reached"),
+        (diffrax.RESULTS.dt_min_reached, "diverged"),
+        (optx.RESULTS.nonlinear_divergence, "diverged"),
+    ],
+)
+def test_classify_result_members(member, expected):
+    assert classify(_FakeSolution(member)) == expected
+
+
+def test_classify_nonfinite_success_cap_and_exceptions():
+    nan = (np.array([[0.0], [np.nan]]), np.zeros((2, 1)))
+    assert classify(_FakeSolution(diffrax.RESULTS.successful, ys=nan)) == "nonfinite"
+    # padding past the last saved step (SaveAt(steps=True)) is not the final state
+    padded = (np.array([[0.0], [1.0], [np.inf]]), np.zeros((3, 1)))
+    ts = np.array([0.0, 1.0, np.inf])
+    assert classify(_FakeSolution(diffrax.RESULTS.successful, ys=padded, ts=ts)) == "ok"
+    # a failed solve whose solver state hit the iteration cap is `maxiter`
+    diverged = diffrax.RESULTS.promote(optx.RESULTS.nonlinear_divergence)
+    sol = _FakeSolution(diverged, solver_state=_State(max_iterations=50))
+    assert classify(sol, iteration_cap=50) == "maxiter"
+    assert classify(sol, iteration_cap=100) == "diverged"
+    assert classify(ZeroDivisionError("x")) == "error:ZeroDivisionError"
+    with pytest.raises(TypeError, match="classify takes"):
+        classify(object())
+
+
+def test_classify_scipy():
+    from scipy.integrate import solve_ivp
+
+    good = solve_ivp(lambda t, y: -y, (0, 1), [1.0], method="DOP853")
+    assert classify(good) == "ok"
+    failed = dataclasses.replace(_FakeSolution(None), ys=None)  # shape of an OdeResult:
+    failed.status, failed.y, failed.message = -1, np.ones((1, 3)), "step size too small"
+    assert classify(failed) == "diverged"
+    failed.status, failed.y = 0, np.array([[1.0, np.nan]])
+    assert classify(failed) == "nonfinite"
+
+
+def test_time_at_error_and_ratios():
+    def rows(solver, family, pts):
+        return [dict(problem="p", solver=solver, family=family, status="ok", error=e, wall_s=w)
+                for w, e in pts]
+
+    ours = rows("nvi", "ours", [(1.0, 1e-6), (2.0, 1e-10), (4.0, 1e-14)])
+    peer = rows("rk", "peer", [(0.1, 1e-4), (1.0, 1e-8), (3.0, 1e-9)])
+    peer.append(dict(problem="p", solver="rk", family="peer", status="maxiter", error=1e-20,
+                     wall_s=0.01))  # not converged: ignored
+    t, how = report.time_at_error(ours, 1e-8)
+    assert how == "interpolated" and t == pytest.approx(2**0.5)
+    assert report.time_at_error(peer, 1e-12) == (None, "unreachable")
+    assert report.time_at_error(peer, 1e-3) == (0.1, "at most")
+    table = {r["target"]: r for r in report.ratio_table(ours + peer, (1e-8, 1e-12))}
+    assert table[1e-8]["ratio"] == pytest.approx(2**0.5 / 1.0)
+    assert table[1e-12]["peer"] is None and table[1e-12]["ratio"] is None
+    assert "unreachable" in report.ratio_markdown(list(table.values()))
+
+
+def test_quick_grid_is_the_reference_grid():
+    cases = quick_grid()
+    assert len(cases) == 108
+    for problem, (s, r) in {"harmonic_oscillator": (10, 8), "pendulum": (8, 8),
+                            "double_pendulum": (10, 16)}.items():
+        mine = [c for c in cases if c.problem == problem]
+        assert len(mine) == 36 and {(c.width, c.nodes) for c in mine} == {(s, r)}
+    assert {c.dt for c in cases} == {0.1, 1.0, 10.0}
+    assert {c.activation for c in cases} == {"gelu", "tanh"}
+    lam64 = next(c for c in cases if c.dtype == "float64").lam_value
+    assert lam64 == pytest.approx(16 * np.sqrt(np.finfo(np.float64).eps))
+    with pytest.raises(ValueError, match="unknown activation"):
+        StabilityCase("pendulum", 0.1, "float64", 8, 8, "swish", "LevenbergMarquardt")
+
+
+@pytest.mark.slow
+def test_work_precision_and_energy_smoke(tmp_path):
+    ho = problems.harmonic_oscillator(dtype=jnp.float64, t1=1.0)
+    # the polynomial member of the NetworkVI family: the same solver path, a lighter compile
+    nvi = Fixed("NetworkVI", dvi.CGVI(3), family="ours")
+    sie = Fixed("SemiImplicitEuler", diffrax.SemiImplicitEuler(), separable=True)
+    entries = [nvi, sie, Adaptive("Tsit5", diffrax.Tsit5()), SciPy()]
+    path = str(tmp_path / "wp.csv")
+    rows = work_precision(ho, entries, steps={"NetworkVI": [5, 10], "SemiImplicitEuler": [10, 100]},
+                          rtols=[1e-5, 1e-9], repeats=1, csv_path=path)
+    statuses = [(r["solver"], r["value"], r["status"], r.get("message")) for r in rows]
+    assert len(rows) == 8 and all(r["status"] == "ok" for r in rows), statuses
+    by = {(r["solver"], r["value"]): r for r in rows}
+    assert by[("NetworkVI", 10)]["error"] < 1e-6
+    assert by[("NetworkVI", 10)]["iterations"] > 0 and by[("NetworkVI", 10)]["steps"] == 10
+    assert by[("SemiImplicitEuler", 100)]["error"] < by[("SemiImplicitEuler", 10)]["error"]
+    assert by[("Tsit5", 1e-9)]["error"] < by[("Tsit5", 1e-5)]["error"]
+    assert by[("scipy DOP853", 1e-9)]["error"] < 1e-7
+    assert all(r["energy_error"] is not None and r["wall_s"] > 0 for r in rows)
+    assert len(read_rows(path)) == 8
+
+    # a problem that is not separable gets one isolated error row for SemiImplicitEuler
+    pend = problems.pendulum(dtype=jnp.float64)
+    (row,) = work_precision(pend, [sie], steps=[10, 20], repeats=1)
+    assert row["status"] == "error:NotSeparable"
+
+    long = long_time_energy(ho.with_span(20.0), [(sie, 200), (SciPy(), 1e-6)], samples=5,
+                            csv_path=str(tmp_path / "energy.csv"))
+    assert len(long) == 10 and all(r["status"] == "ok" for r in long)
+    sie_err = [r["energy_error"] for r in long if r["solver"] == "SemiImplicitEuler"]
+    assert sie_err == sorted(sie_err)  # a running maximum
+
+    report.plot_work_precision(rows, tmp_path / "wp.png")
+    report.plot_energy(long, tmp_path / "energy.png")
+    assert "NetworkVI" in report.work_precision_table(rows)
+    assert os.path.getsize(tmp_path / "wp.png") > 1000
+    assert os.path.getsize(tmp_path / "energy.png") > 1000
+
+
+@pytest.mark.slow
+def test_stability_sweep_smoke(tmp_path):
+    # the reference's harmonic-oscillator setting; dt = 10 does not converge (one compilation)
+    base = StabilityCase("harmonic_oscillator", 0.1, "float64", 8, 10, "tanh",
+                         "LevenbergMarquardt")
+    path = str(tmp_path / "stability.csv")
+    rows = stability_sweep([dataclasses.replace(base, dt=10.0), base], csv_path=path)
+    by = {r["dt"]: r for r in rows}
+    ok = by[0.1]
+    assert ok["status"] == "ok", ok
+    assert ok["ref_err"] < 1e-10 and ok["ham_drift"] < 1e-10 and ok["steps_done"] == 10
+    assert by[10.0]["status"] in STATUSES and by[10.0]["status"] != "ok"
+    assert by[10.0]["steps_done"] < 10 and by[10.0].get("ref_err") is None
+    assert [r["status"] for r in read_rows(path)] == [r["status"] for r in rows]
+    rates = convergence_rates(rows)["float64"]
+    assert (rates["cases"], rates["converged"], rates["rate"]) == (2, 1, 0.5)
+    report.plot_convergence_heatmap(rows, tmp_path / "heat.png")
+    assert os.path.getsize(tmp_path / "heat.png") > 1000
+    assert "reference rate" in report.stability_table(rows)
+
+
+def test_cli_report(tmp_path):
+    # scipy only: no compilation, so the command line and the report run end to end quickly
+    out = str(tmp_path / "out")
+    cli_main(["work-precision", "--problems", "harmonic_oscillator", "--solvers", "scipy",
+              "--repeats", "1", "--no-progress", "--out", out])
+    text = open(os.path.join(out, "report.md")).read()
+    assert "scipy DOP853" in text and "Work-precision" in text
+    assert os.path.exists(os.path.join(out, "work_precision.png"))
+    with pytest.raises(SystemExit):
+        cli_main(["work-precision", "--problems", "nope", "--out", out])
