@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -33,7 +34,7 @@ def ensemble_mesh(devices: Sequence[jax.Device] | None = None, axis_name: str = 
 
 def _batch_size(args: tuple, in_axes: tuple) -> int:
     sizes = set()
-    for i, (arg, axis) in enumerate(zip(args, in_axes)):
+    for i, (arg, axis) in enumerate(zip(args, in_axes, strict=True)):
         if axis is None:
             continue
         leaves = jax.tree_util.tree_leaves(arg)
@@ -146,15 +147,13 @@ def ensemble(
         return jnp.concatenate([x, extra], axis=0)
 
     placed = []
-    for arg, axis in zip(args, in_axes):
+    for arg, axis in zip(args, in_axes, strict=True):
         if axis is None:
             sharding = NamedSharding(mesh, PartitionSpec())
             placed.append(jax.tree_util.tree_map(lambda x: jax.device_put(x, sharding), arg))
         else:
             sharding = NamedSharding(mesh, PartitionSpec(axis_name))
-            placed.append(
-                jax.tree_util.tree_map(lambda x: jax.device_put(pad(x), sharding), arg)
-            )
+            placed.append(jax.tree_util.tree_map(lambda x: jax.device_put(pad(x), sharding), arg))
     out = _compiled(fn, in_axes, mesh, axis_name)(*placed)
     if padded == size:
         return out

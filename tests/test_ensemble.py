@@ -109,7 +109,11 @@ def test_sharded_over_8_devices_matches_unsharded():
     env["JAX_PLATFORMS"] = "cpu"
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.run(
-        [sys.executable, "-c", SHARDED], env=env, cwd=root, capture_output=True, text=True,
+        [sys.executable, "-c", SHARDED],
+        env=env,
+        cwd=root,
+        capture_output=True,
+        text=True,
         timeout=600,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
