@@ -11,11 +11,12 @@ handle this:
   added to the raw diagonal, so the pairing of equations and unknowns matters).
 
 Both take an Armijo backtracking line search on `½‖F‖²`, form the Jacobian densely (by
-default with `jax.jacrev`: the residual is itself one vector-Jacobian product, and
-reverse-over-reverse measured 1.5–1.7x faster than `jax.jacfwd` on the oscillator and
-double-pendulum fixtures, `benchmarks/speed.py`), and are `optimistix.AbstractRootFinder`s,
-so `optimistix.root_find` supplies implicit differentiation of a converged step. Any
-optimistix root finder (`optx.Newton`, `optx.Dogleg`, ...) may be used in their place.
+default with `jax.jacfwd`; `jacobian="rev"` uses `jax.jacrev`, which evaluates the Jacobian
+alone 1.5–1.7x faster on the oscillator and double-pendulum fixtures, but changes the rounding
+and with it the iteration path; `benchmarks/speed.py` compares whole solves), and are
+`optimistix.AbstractRootFinder`s, so `optimistix.root_find` supplies implicit differentiation
+of a converged step. Any optimistix root finder (`optx.Newton`, `optx.Dogleg`, ...) may be used
+in their place.
 
 **When is a step converged?** Tolerances left as `None` scale with the machine epsilon of the
 unknowns' dtype (`default_tolerances`). Because the Jacobian is numerically rank-deficient, part
@@ -101,7 +102,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
     rtol: float | None = None
     atol: float | None = None
     norm: Callable = optx.max_norm
-    jacobian: str = eqx.field(static=True, default="rev")
+    jacobian: str = eqx.field(static=True, default="fwd")
 
     def __check_init__(self):
         if self.jacobian not in ("rev", "fwd"):
@@ -238,7 +239,7 @@ _COMMON_ARGS = """
     - `max_stalls`: consecutive failed line searches before giving up.
     - `patience_floor`: iterations without the residual halving that mark its floor.
     - `patience`: iterations without the residual halving before giving up.
-    - `jacobian`: `"rev"` (default, `jax.jacrev`) or `"fwd"` (`jax.jacfwd`): how the dense
+    - `jacobian`: `"fwd"` (default, `jax.jacfwd`) or `"rev"` (`jax.jacrev`): how the dense
       Jacobian is formed. Both give the same matrix up to rounding.
     - `rtol`, `atol`, `norm`: unused; present because diffrax reads them off the root finder of
       any implicit solver.
