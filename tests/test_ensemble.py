@@ -49,12 +49,6 @@ def test_ensemble_matches_single_solves():
     np.testing.assert_allclose(q[2, 0, 0] / q[0, 0, 0], expected, rtol=1e-6)
 
 
-def test_shared_argument():
-    y0 = initial_conditions(2)
-    (q, _), _ = dvi.ensemble(solve_one, y0, jnp.asarray(1.0), in_axes=(0, None))
-    np.testing.assert_allclose(q[:, 0, 0], y0[0][:, 0] * np.cos(0.3), rtol=1e-10)
-
-
 def test_bad_input_is_refused():
     y0 = initial_conditions(3)
     with pytest.raises(ValueError, match="ensemble size"):
@@ -81,15 +75,16 @@ SHARDED = textwrap.dedent(
 
     assert jax.device_count() == 8, jax.devices()
     y0 = initial_conditions(13)          # not a multiple of 8: padded, then trimmed
-    k = jnp.linspace(0.5, 2.0, 13)
+    k = jnp.asarray(1.0)                 # shared by all members (replicated on every device)
     mesh = dvi.ensemble_mesh()
-    (q, p), result = dvi.ensemble(solve_one, y0, k, mesh=mesh)
-    (q1, p1), result1 = dvi.ensemble(solve_one, y0, k)
+    (q, p), result = dvi.ensemble(solve_one, y0, k, in_axes=(0, None), mesh=mesh)
+    (q1, p1), result1 = dvi.ensemble(solve_one, y0, k, in_axes=(0, None))
     assert q.shape == q1.shape == (13, 1, 1), q.shape
     assert np.all(np.asarray(result)) and np.all(np.asarray(result1))
     # the sharded run used all 8 devices
-    (qs, _), _ = dvi.ensemble(solve_one, initial_conditions(16), jnp.ones(16), mesh=mesh)
+    (qs, _), _ = dvi.ensemble(solve_one, initial_conditions(16), k, in_axes=(0, None), mesh=mesh)
     assert len(qs.sharding.device_set) == 8, qs.sharding
+    np.testing.assert_allclose(q[:, 0, 0], y0[0][:, 0] * np.cos(0.3), rtol=1e-6)  # q0 cos t
     dq = float(np.max(np.abs(np.asarray(q) - np.asarray(q1))))
     dp = float(np.max(np.abs(np.asarray(p) - np.asarray(p1))))
     print("max difference sharded - unsharded:", dq, dp)
