@@ -6,6 +6,7 @@ float64 needs `jax.config.update("jax_enable_x64", True)`; the library never fli
 from . import oga, problems
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
 from .ansatz import AbstractBasis, DenseNetBasis, LagrangeBasis, ShallowNetBasis
+from .ensemble import ensemble, ensemble_mesh
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .interpolation import NetworkInterpolation
 from .methods import (
@@ -64,6 +65,8 @@ from .terms import IODETerm, LagrangianTerm
 __version__ = "0.1.0.dev0"
 
 __all__ = [
+    "ensemble",
+    "ensemble_mesh",
     "DenseNet",
     "DenseNetBasis",
     "LSGD",

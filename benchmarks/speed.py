@@ -1,0 +1,259 @@
+"""Every speed figure of the performance issue in one run: medians of repeats and ratios.
+
+1. Time per step of `NetworkVI(ShallowNetBasis(tanh, 10), GaussLegendre(8))` on the harmonic
+   oscillator (float64, h = 0.1, `--ho-steps` steps, default 1000), with the error of q at
+   the end relative to the amplitude, and the median nonlinear iterations per step;
+2. the same for the double pendulum with `GaussLegendre(16)` (`--dp-steps`, default 50);
+   both with the Newton Jacobian by `jax.jacfwd` (the default) and by `jax.jacrev`
+   (`LevenbergMarquardt(jacobian="rev")`), side by side;
+3. first-call time (trace + compile + one run) minus one steady-state run of a ShallowNet
+   `diffeqsolve`, per fixture;
+4. an ensemble of `--members` (default 1024) oscillator trajectories (10 steps each, random
+   amplitudes) through `dvi.ensemble` against a Python loop of single jitted solves (the loop
+   is timed on `--loop-sample` members and its throughput extrapolated);
+5. with `--devices 8` (default), the same ensemble sharded over 8 virtual CPU devices in a
+   subprocess (`XLA_FLAGS=--xla_force_host_platform_device_count=8`), its time and the
+   largest difference from the unsharded result.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/speed.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+
+if "--sharded-child" in sys.argv:  # must set the device count before JAX starts
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=8"
+    ).strip()
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax  # noqa: E402
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import diffrax_vi as dvi  # noqa: E402
+from diffrax_vi import problems  # noqa: E402
+
+H = 0.1
+
+
+def timed(fn, *args):
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - start
+
+
+def fixture_run(problem, nodes, steps, repeats, jacobian):
+    problem = problem.with_span(n_steps=steps, dt=H)
+    solver = dvi.NetworkVI(
+        dvi.ShallowNetBasis(dvi.tanh, 10),
+        dvi.GaussLegendre(nodes),
+        root_finder=dvi.LevenbergMarquardt(jacobian=jacobian),
+    )
+
+    @eqx.filter_jit
+    def run(y0):
+        return diffrax.diffeqsolve(
+            problem.term,
+            solver,
+            problem.t0,
+            problem.t1,
+            H,
+            y0,
+            args=problem.args,
+            saveat=diffrax.SaveAt(t1=True, solver_state=True),
+            max_steps=steps + 1,
+            throw=False,
+        )
+
+    sol, first = timed(run, problem.y0)
+    total = statistics.median(timed(run, problem.y0)[1] for _ in range(repeats))
+    ok = bool(sol.result == diffrax.RESULTS.successful)
+    t_end = float(sol.ts[-1])
+    amplitude = float(np.max(np.abs(problem.reference(problem.ts)[0])))
+    q_ref = problem.reference(np.array([t_end]))[0][0]
+    error = float(np.max(np.abs(np.asarray(sol.ys[0][-1]) - q_ref))) / amplitude
+    state = sol.solver_state
+    n = int(state.steps)
+    hist = np.asarray(state.histogram)
+    return dict(
+        ok=ok,
+        ms_step=1e3 * total / max(n, 1),
+        compile_s=first - total,
+        error=error,
+        it_median=int(np.searchsorted(np.cumsum(hist), n / 2)),
+        it_mean=int(state.iterations) / max(n, 1),
+    )
+
+
+def ensemble_inputs(members):
+    rng = np.random.default_rng(0)
+    q = jnp.asarray(rng.uniform(0.1, 1.0, (members, 1)))
+    return q, jnp.zeros_like(q)
+
+
+_HO = problems.harmonic_oscillator(dtype=jnp.float64)
+_SOLVER = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8))
+
+
+def solve_member(y0):
+    sol = diffrax.diffeqsolve(
+        _HO.term, _SOLVER, 0.0, 1.0, H, y0, saveat=diffrax.SaveAt(t1=True), throw=False
+    )
+    return sol.ys, sol.result == diffrax.RESULTS.successful
+
+
+def ensemble_figures(members, loop_sample, repeats):
+    y0 = ensemble_inputs(members)
+    out, first = timed(lambda y: dvi.ensemble(solve_member, y), y0)
+    t_ens = statistics.median(
+        timed(lambda y: dvi.ensemble(solve_member, y), y0)[1] for _ in range(repeats)
+    )
+    single = jax.jit(solve_member)
+    jax.block_until_ready(single((y0[0][0], y0[1][0])))
+    loops = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for i in range(loop_sample):
+            jax.block_until_ready(single((y0[0][i], y0[1][i])))
+        loops.append((time.perf_counter() - start) / loop_sample)
+    per_loop = statistics.median(loops)
+    # every member against its own single solve (the first loop_sample of them)
+    (q, _), ok = out
+    diff = max(
+        float(np.max(np.abs(np.asarray(q[i]) - np.asarray(single((y0[0][i], y0[1][i]))[0][0]))))
+        for i in range(loop_sample)
+    )
+    return dict(
+        ok=bool(np.all(np.asarray(ok))),
+        ens_s=t_ens,
+        ens_compile_s=first - t_ens,
+        loop_per_solve_s=per_loop,
+        speedup=per_loop * members / t_ens,
+        diff=diff,
+    )
+
+
+def sharded_child(members, repeats):
+    assert jax.device_count() == 8, jax.devices()
+    y0 = ensemble_inputs(members)
+    mesh = dvi.ensemble_mesh()
+    ref = jax.block_until_ready(dvi.ensemble(solve_member, y0))
+    out = jax.block_until_ready(dvi.ensemble(solve_member, y0, mesh=mesh))
+    t_sh = statistics.median(
+        timed(lambda y: dvi.ensemble(solve_member, y, mesh=mesh), y0)[1] for _ in range(repeats)
+    )
+    t_un = statistics.median(
+        timed(lambda y: dvi.ensemble(solve_member, y), y0)[1] for _ in range(repeats)
+    )
+    diff = max(
+        float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+        for a, b in zip(
+            jax.tree_util.tree_leaves(out[0]), jax.tree_util.tree_leaves(ref[0]), strict=True
+        )
+    )
+    devices = len(jax.tree_util.tree_leaves(out[0])[0].sharding.device_set)
+    print(f"SHARDED {t_sh} {t_un} {diff} {devices} {bool(np.all(np.asarray(out[1])))}")
+
+
+def main():
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--ho-steps", type=int, default=1000)
+    parser.add_argument("--dp-steps", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--members", type=int, default=1024)
+    parser.add_argument("--loop-sample", type=int, default=16)
+    parser.add_argument("--devices", type=int, default=8, help="0 skips the sharded run")
+    parser.add_argument("--quick", action="store_true", help="100/20 steps, 128 members")
+    parser.add_argument("--sharded-child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.quick:
+        args.ho_steps, args.dp_steps, args.members, args.loop_sample = 100, 20, 128, 8
+    if args.sharded_child:
+        sharded_child(args.members, args.repeats)
+        return
+
+    print(f"command: python {shlex.join(sys.argv)}")
+    print(
+        f"machine: {platform.platform()}, python {platform.python_version()}, jax "
+        f"{jax.__version__} ({jax.default_backend()}), os.cpu_count() = {os.cpu_count()}, "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
+    ho = problems.harmonic_oscillator(dtype=jnp.float64)
+    dp = problems.double_pendulum(dtype=jnp.float64)
+    rows = []
+    for name, problem, nodes, steps in (
+        ("harmonic oscillator, GL8", ho, 8, args.ho_steps),
+        ("double pendulum, GL16", dp, 16, args.dp_steps),
+    ):
+        for jac in ("fwd", "rev"):
+            r = fixture_run(problem, nodes, steps, args.repeats, jac)
+            rows.append((name, steps, jac, r))
+    print(
+        "\n| fixture (tanh width 10, h = 0.1) | steps | Jacobian | ok | ms/step (median) "
+        "| compile s | iters median | iters mean | rel. error q(t end) |"
+    )
+    print("|" + "---|" * 9)
+    for name, steps, jac, r in rows:
+        print(
+            f"| {name} | {steps} | {jac} | {r['ok']} | {r['ms_step']:.3f} | {r['compile_s']:.1f} "
+            f"| {r['it_median']} | {r['it_mean']:.2f} | {r['error']:.2e} |"
+        )
+    print("\nratios (jacrev / jacfwd, same run):")
+    for i in (0, 2):
+        a, b = rows[i + 1][3], rows[i][3]
+        print(
+            f"- {rows[i][0]}: time per step {a['ms_step'] / b['ms_step']:.2f}x, "
+            f"compile {a['compile_s'] / b['compile_s']:.2f}x"
+        )
+    print("targets: HO <= 1 ms/step, DP <= 3 ms/step, median iterations <= 4, compile <= 10 s")
+
+    e = ensemble_figures(args.members, args.loop_sample, args.repeats)
+    print(
+        f"\nensemble of {args.members} oscillator solves (10 steps each): ok={e['ok']}, "
+        f"{e['ens_s'] * 1e3:.1f} ms (median), compile {e['ens_compile_s']:.1f} s; Python loop "
+        f"of single jitted solves: {e['loop_per_solve_s'] * 1e3:.2f} ms per solve (median over "
+        f"{args.loop_sample}); throughput ratio ensemble / loop = {e['speedup']:.1f}x "
+        f"(target >= 50x); max |q_ensemble - q_single| = {e['diff']:.1e}"
+    )
+    if args.devices:
+        cmd = [
+            sys.executable,
+            os.path.abspath(__file__),
+            "--sharded-child",
+            "--members",
+            str(args.members),
+            "--repeats",
+            str(args.repeats),
+        ]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        line = [s for s in proc.stdout.splitlines() if s.startswith("SHARDED")]
+        if proc.returncode or not line:
+            print(f"sharded run failed:\n{proc.stdout}\n{proc.stderr[-2000:]}")
+        else:
+            t_sh, t_un, diff, ndev, ok = line[0].split()[1:]
+            print(
+                f"sharded over {ndev} virtual CPU devices (one process, "
+                f"{os.cpu_count()} cores): ok={ok}, {float(t_sh) * 1e3:.1f} ms vs unsharded "
+                f"{float(t_un) * 1e3:.1f} ms in the same process "
+                f"({float(t_un) / float(t_sh):.2f}x); max |sharded - unsharded| = "
+                f"{float(diff):.1e}"
+            )
+
+
+if __name__ == "__main__":
+    main()
