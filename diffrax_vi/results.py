@@ -74,7 +74,8 @@ def _register(enumeration, name: str, message: str):
 
 
 STEP_FAILURES = {name: _register(diffrax.RESULTS, name, msg) for name, msg in _MESSAGES.items()}
-_KINDS = {
+# Member name -> failure kind, for every way a step (or a solver inside it) can fail.
+FAILURE_KINDS = {
     "vi_step_max_iterations": "maxiter",
     "vi_step_stalled": "diverged",
     "vi_step_nonfinite": "nonfinite",
@@ -134,7 +135,7 @@ def failure_kind(result) -> str | np.ndarray:
         name = names[int(index)]
         if name in ("successful", "event_occurred"):
             return "ok"
-        return _KINDS.get(name, "other")
+        return FAILURE_KINDS.get(name, "other")
 
     value = np.asarray(result._value)
     if value.ndim == 0:

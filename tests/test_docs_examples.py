@@ -33,6 +33,7 @@ LONG_PAGES = {
     "how-to/ensembles.md": "a vmapped solve (the tests of the solver cover vmap too)",
     "how-to/lagrangians.md": "another user Lagrangian (the Home quickstart runs one in CI)",
     "how-to/precision.md": "float32 solve, the configuration of test_solver's float32 test",
+    "getting-started.md": "the oscillator solve again (the Home quickstart runs one in CI)",
 }
 
 

@@ -22,31 +22,20 @@ from typing import Any
 
 import numpy as np
 
+from ..results import FAILURE_KINDS
+
 __all__ = ["STATUSES", "RESULT_STATUS", "classify", "result_name", "converged"]
 
 STATUSES = ("ok", "maxiter", "singular", "diverged", "nonfinite")
 
-# Member name (of diffrax/optimistix/lineax RESULTS) -> status. Members not listed here are
-# reported as `error:<name>`.
+# Member name (of diffrax/optimistix/lineax RESULTS) -> status. The failures of a step's solve
+# share their names with `diffrax_vi.results`; members not listed are reported as
+# `error:<name>`.
 RESULT_STATUS: dict[str, str] = {
     "successful": "ok",
     "event_occurred": "ok",
-    # optimistix / lineax failures, as NetworkVI's step reports them today
-    "nonlinear_max_steps_reached": "maxiter",
-    "nonlinear_divergence": "diverged",
-    "nonfinite": "nonfinite",
-    "nonfinite_input": "nonfinite",
-    "singular": "singular",
-    "breakdown": "singular",
-    "conlim": "singular",
-    "stagnation": "diverged",
-    # adaptive step size collapsed
-    "dt_min_reached": "diverged",
-    # per-step failure members planned for diffrax.RESULTS (one per way a step's solve fails)
-    "vi_step_max_iterations": "maxiter",
-    "vi_step_stalled": "diverged",
-    "vi_step_nonfinite": "nonfinite",
-    "vi_step_singular": "singular",
+    "dt_min_reached": "diverged",  # an adaptive step size collapsed
+    **FAILURE_KINDS,
 }
 
 
