@@ -195,3 +195,23 @@ def test_cli_report(tmp_path):
     assert os.path.exists(os.path.join(out, "work_precision.png"))
     with pytest.raises(SystemExit):
         cli_main(["work-precision", "--problems", "nope", "--out", out])
+
+
+def test_harness_refuses_bad_input():
+    problem = problems.harmonic_oscillator()
+    tsit5 = Adaptive("Tsit5", diffrax.Tsit5())
+    cgvi = Fixed("CGVI", dvi.CGVI(3))
+    with pytest.raises(TypeError, match="Fixed, Adaptive or SciPy"):
+        work_precision(problem, [diffrax.Tsit5()], rtols=[1e-6])
+    with pytest.raises(ValueError, match="CGVI: the step count must be a positive number"):
+        work_precision(problem, [cgvi], steps=[0])
+    with pytest.raises(ValueError, match="CGVI: the step count must be an integer"):
+        work_precision(problem, [cgvi], steps=[2.5])
+    with pytest.raises(ValueError, match="Tsit5: the rtol must be a positive number"):
+        work_precision(problem, [tsit5], rtols=[float("nan")])
+    with pytest.raises(ValueError, match="repeats"):
+        work_precision(problem, [tsit5], rtols=[1e-6], repeats=0)
+    with pytest.raises(ValueError, match="Tsit5: the rtol must be a positive number"):
+        long_time_energy(problem, [(tsit5, -1e-6)])
+    with pytest.raises(ValueError, match="samples"):
+        long_time_energy(problem, [(tsit5, 1e-6)], samples=1)

@@ -279,6 +279,21 @@ def _values_for(entry: Entry, values: Sequence[float] | Mapping[str, Sequence[fl
     return values
 
 
+def _check_run(entry: Any, value: Any) -> None:
+    """Refuse a solver entry that is not `Fixed`/`Adaptive`/`SciPy`, or a sweep value that is
+    not a positive number (step count for `Fixed`, rtol otherwise), naming the culprit."""
+    if not isinstance(entry, Fixed | Adaptive | SciPy):
+        raise TypeError(
+            f"solver entries must be Fixed, Adaptive or SciPy, got {type(entry).__name__}"
+        )
+    kind = "step count" if isinstance(entry, Fixed) else "rtol"
+    if not (isinstance(value, int | float | np.integer | np.floating) and value > 0
+            and np.isfinite(value)):
+        raise ValueError(f"{entry.name}: the {kind} must be a positive number, got {value!r}")
+    if isinstance(entry, Fixed) and int(value) != value:
+        raise ValueError(f"{entry.name}: the step count must be an integer, got {value!r}")
+
+
 def work_precision(
     problem: Problem,
     solvers: Sequence[Entry],
@@ -314,6 +329,11 @@ def work_precision(
     - `csv_path`: if given, rows are appended to this CSV as they are measured.
     - `progress`: a `tqdm`-like object with `update(n)` and `set_postfix_str(s)`, or `None`.
     """
+    if repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {repeats}")
+    for entry in solvers:
+        for value in _values_for(entry, steps if isinstance(entry, Fixed) else rtols) or ():
+            _check_run(entry, value)
     energy = _energy_fn(problem)
     t1 = problem.t1
     q_ref = problem.reference(np.array([t1]))[0][0]
@@ -387,6 +407,10 @@ def long_time_energy(
     levels off, a drift keeps growing), and each row repeats the run's `wall_s` (one run after a
     compiling call on a short span), `steps` and `status`.
     """
+    if samples < 2:
+        raise ValueError(f"samples must be at least 2, got {samples}")
+    for entry, value in runs:
+        _check_run(entry, value)
     energy = _energy_fn(problem)
     t0, t1 = problem.t0, problem.t1
     saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
