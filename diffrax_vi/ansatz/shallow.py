@@ -129,6 +129,10 @@ class ShallowNetBasis(AbstractBasis):
         alpha = c if isinstance(self.symmetry, MirrorPairs) else c[0::2]
         return jnp.concatenate([alpha, w[0::2], b[0::2]])
 
+    def num_output_weights(self) -> int:
+        """Number of output weights `α` per coordinate (they lead the parameter column)."""
+        return self.width // 2 if isinstance(self.symmetry, SharedMirrorPairs) else self.width
+
     @staticmethod
     def join(alpha: Array, w: Array, beta: Array) -> Array:
         """Parameters of an unmirrored network from `(α, w, β)`."""

@@ -18,7 +18,7 @@ from jaxtyping import Array, PyTree
 
 from ..ansatz.base import AbstractBasis
 from ..ansatz.shallow import ShallowNetBasis
-from ..linalg import solve
+from ..linalg import damped_least_squares, solve
 from ..oga import OGA, OGAReference, oga_fit
 from ..quadrature import Simpson
 
@@ -94,6 +94,39 @@ def fit_network(
         return basis.from_neurons(res.W, res.b, res.c)
 
     return jax.vmap(one, in_axes=1, out_axes=1)(problem.targets)
+
+
+def refit_output_weights(basis: ShallowNetBasis, problem: FitProblem) -> tuple[Array, Array]:
+    """The previous step's neurons with their output weights refitted to this step's targets.
+
+    The hidden weights and biases of `problem.previous` are kept; the output weights (in which
+    the network is linear) solve the Simpson-weighted least-squares fit to the targets, per
+    coordinate, with a tiny Tikhonov term that keeps redundant neurons' weights bounded.
+    Returns the parameters and the relative misfit `‖N − y‖ / (1 + max|y|)` (weighted `L²`
+    norm on `[0, 1]`, largest over coordinates), which decides whether the fit is good enough
+    to replace a fresh OGA seed.
+    """
+    targets = problem.targets
+    dtype = targets.dtype
+    nodes = jnp.asarray(problem.nodes, dtype)
+    sw = jnp.sqrt(jnp.asarray(problem.weights, dtype))
+    k = basis.num_output_weights()
+
+    def one(theta, y):
+        def curve(alpha, tau):
+            return basis.evaluate(theta.at[:k].set(alpha)[:, None], tau)[0]
+
+        design = jax.vmap(lambda tau: jax.grad(curve)(theta[:k], tau))(nodes)
+        if problem.modulation is not None:
+            design = design * jnp.asarray(problem.modulation, dtype)[:, None]
+        a = design * sw[:, None]
+        reg = jnp.sqrt(jnp.finfo(dtype).eps) * jnp.max(jnp.abs(a))
+        alpha = damped_least_squares(a, y * sw, reg)
+        misfit = jnp.sqrt(jnp.sum((a @ alpha - y * sw) ** 2)) / (1 + jnp.max(jnp.abs(y)))
+        return theta.at[:k].set(alpha), misfit
+
+    theta, misfit = jax.vmap(one, in_axes=(1, 1), out_axes=(1, 0))(problem.previous, targets)
+    return theta, jnp.max(misfit)
 
 
 class LeastSquaresFit(AbstractParameterSeed):
