@@ -99,5 +99,9 @@ class NetworkInterpolation(diffrax.AbstractLocalInterpolation):
         at = jax.vmap(lambda x: lagrange_weights(self.nodes, tau * x))(jnp.asarray(gauss, dtype))
         partial = tau * (jnp.asarray(weights, dtype) @ at) @ self.f_nodes
         whole = jnp.asarray(weights, dtype) @ self.f_nodes  # ∫_0^1 F (Gauss rule, exact)
+        # The Lagrange weights at τ = 1 reproduce `whole` only up to rounding: pin the value
+        # there (a correction of rounding size, so the τ-derivative is left as it is).
+        gap = jax.lax.stop_gradient(whole - partial)
+        partial = partial + jnp.where(tau == 1, gap, jnp.zeros_like(gap))
         # p_n + hP(τ) + τ (p_{n+1} − p_n − hW), written so that both ends are exact in floats.
         return (1 - tau) * (self.p0 + h * partial) + tau * (self.p1 - h * (whole - partial))

@@ -125,9 +125,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       and biases) and output weights refitted to the new trajectory by linear least squares,
       when that fit matches the trajectory to within `refit_tolerance`; otherwise (and on the
       first step) run the OGA. The refit costs a small linear solve where the OGA costs a
-      greedy search over the whole dictionary (about 2 ms of a 3 ms oscillator step), and on
-      smooth motion it fits as well. Default `True` with an OGA seed of a `ShallowNetBasis`;
-      `False` runs the OGA on every step, as the reference does.
+      greedy search over the whole dictionary (about 2 of the 3 ms of an oscillator step), and
+      fits as well on smooth motion. Default `False` (the OGA on every step, as the
+      reference does): the refitted networks converge to slightly worse-conditioned roots,
+      so results move at the level of the residual floor (oscillator, 10 steps of 0.1: max
+      error 1.2e-11 against 4.5e-13; over 300 steps, where truncation dominates, 4.4e-10
+      either way). `True` makes the oscillator step 6x faster and the double pendulum at
+      h = 0.1 converge where the OGA seed stalls (see `benchmarks/speed.py`).
     - `refit_tolerance`: acceptance bound on the relative misfit of the refit (weighted `L²`
       on the step, over `1 + max|q|`). Default `None`: `sqrt(eps)` of the working dtype.
     - `root_finder`: the per-step root finder. Default `LevenbergMarquardt()`, whose
@@ -156,7 +160,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     initial_guess: OGA | OGAReference | AbstractParameterSeed = OGA1d()
     bias_interval: tuple[float, float] = eqx.field(static=True, default=(-math.pi, math.pi))
     dict_amount: int = eqx.field(static=True, default=4000)
-    reuse_neurons: bool = eqx.field(static=True, default=True)
+    reuse_neurons: bool = eqx.field(static=True, default=False)
     refit_tolerance: float | None = eqx.field(static=True, default=None)
     root_finder: optx.AbstractRootFinder = LevenbergMarquardt()
     root_find_max_steps: int = eqx.field(static=True, default=100)
@@ -288,6 +292,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             previous, fresh = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype), jnp.array(True)
         else:
             previous, fresh = state.theta, state.fresh
+        # The seed is a starting point, not part of the solution: no derivative flows through
+        # it (and none may, through the while loop of `_unless_all_skip`).
+        targets, previous = jax.lax.stop_gradient((targets, previous))
         problem = fit_problem(targets, modulated, previous, fresh)
 
         def fresh_fit():
@@ -301,7 +308,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             if tolerance is None:
                 tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
             reused = ~fresh & (misfit <= tolerance)
-            theta = jax.lax.cond(reused, lambda: refit, fresh_fit)
+            theta = _unless_all_skip(~reused, fresh_fit, refit)
         else:
             reused, theta = jnp.array(False), fresh_fit()
         x = self.formulation.unknowns(theta, labels[-1], p_end)
@@ -537,6 +544,20 @@ def _interpolation_factory(
     return functools.partial(
         NetworkInterpolation, basis=basis, formulation=formulation, nodes=nodes
     )
+
+
+def _unless_all_skip(need: Array, expensive, cheap: PyTree) -> PyTree:
+    """`expensive()` if `need`, else `cheap`: a conditional that stays lazy under `vmap`.
+
+    `lax.cond` with a batched predicate becomes a `select` that evaluates both branches for
+    every member; a while loop of at most one iteration runs its body only while some member
+    still needs it, so an ensemble whose members all refit skips the OGA entirely.
+    """
+
+    def body(carry):
+        return jnp.array(False), expensive()
+
+    return jax.lax.while_loop(lambda carry: carry[0], body, (need, cheap))[1]
 
 
 def _residual_scale(ctx: StepContext) -> Array:
