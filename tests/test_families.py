@@ -321,6 +321,7 @@ def test_every_public_name_resolves_and_sympy_loads_lazily():
     assert out.stdout.strip() == "False"
 
 
+@pytest.mark.long  # 260 s for both dtypes; `make test-long`
 @pytest.mark.parametrize("dtype, bound", [(jnp.float32, 1e-5), (jnp.float16, 1e-3)])
 def test_every_activation_works_in_reduced_precision(dtype, bound):
     problem = problems.harmonic_oscillator(t1=0.2, dtype=dtype)

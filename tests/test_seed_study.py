@@ -85,6 +85,7 @@ QUICK_GRID = [
 ]
 
 
+@pytest.mark.long  # 190 s on the CI machine; `make test-long`
 def test_study_cross_section_is_always_finite():
     cases = _subset(sq.PRECISIONS, QUICK_GRID)
     per_config = len(sq.ACTIVATIONS) * len(sq.TARGETS)
@@ -109,6 +110,7 @@ def test_study_whole_grid_is_always_finite(tmp_path):
     assert (tmp_path / "seed_quality.csv").read_text().count("\n") == len(cases) + 1
 
 
+@pytest.mark.long  # 65 s; `make test-long`
 def test_reference_baseline_loses_rank_in_float16_and_stable_fits_do_not():
     """The reference's float16 failure mode: its float64 normal-equations seed, rounded to
     float16, duplicates atoms (a singular seed design, non-finite output weights); the
