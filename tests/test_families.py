@@ -111,7 +111,11 @@ def test_reversible_variants_accuracy(method):
     ],
     ids=["free", "interpolating", "interpolating-shared"],
 )
-@pytest.mark.parametrize("name", ["harmonic_oscillator", "double_pendulum"])
+@pytest.mark.parametrize(
+    "name",
+    # the double pendulum (~50 s per variant) runs in `make test-long`
+    ["harmonic_oscillator", pytest.param("double_pendulum", marks=pytest.mark.long)],
+)
 def test_reversible_variants_step_back_to_the_start(method, name):
     problem = getattr(problems, name)()
     nodes = 8 if name == "harmonic_oscillator" else 16
