@@ -236,6 +236,19 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
                 f"{self.error_estimate!r}"
             )
+        if not isinstance(self.reuse_neurons, bool):
+            raise TypeError(f"reuse_neurons must be True or False, got {self.reuse_neurons!r}")
+        if self.reuse_neurons and not self._refits():
+            raise ValueError(
+                "reuse_neurons refits the output weights of a ShallowNetBasis seeded by an OGA "
+                f"configuration; got {self.basis!r} with {self.initial_guess!r}"
+            )
+        tol = self.refit_tolerance
+        if tol is not None and not (
+            isinstance(tol, int | float) and not isinstance(tol, bool) and math.isfinite(tol)
+            and tol >= 0
+        ):
+            raise ValueError(f"refit_tolerance must be None or a finite number >= 0, got {tol!r}")
         if not isinstance(self.iteration_log, int) or self.iteration_log < 0:
             raise ValueError(
                 f"iteration_log must be a non-negative integer, got {self.iteration_log!r}"

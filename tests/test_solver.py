@@ -322,3 +322,31 @@ def test_fast_configuration_in_an_ensemble_matches_single_solves():
         single = jax.jit(one)(q0s[i])
         np.testing.assert_allclose(batch.ys[0][i], single.ys[0], rtol=0, atol=1e-13)
         assert int(batch.solver_state.refits[i]) == int(single.solver_state.refits) == 4
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(reuse_neurons="yes"), "reuse_neurons"),
+        (dict(reuse_neurons=True, initial_guess=dvi.InitialWeights([[0.0]] * 30)), "reuse_neurons"),
+        (dict(reuse_neurons=True, refit_tolerance=-1.0), "refit_tolerance"),
+        (dict(reuse_neurons=True, refit_tolerance=float("nan")), "refit_tolerance"),
+    ],
+)
+def test_fast_configuration_refuses_bad_options(kwargs, match):
+    with pytest.raises((TypeError, ValueError), match=match):
+        shallow(dvi.tanh, 10, 8, **kwargs)
+
+
+def test_fast_configuration_keeps_float32():
+    problem = problems.harmonic_oscillator(dtype=jnp.float32)
+    solver = shallow(dvi.tanh, 10, 8, **FAST)
+    t0, t1 = jnp.float32(0.0), jnp.float32(0.1)
+    state = solver.init(problem.term, t0, t1, problem.y0, None)
+    jaxpr = jax.make_jaxpr(lambda y, s: solver.step(problem.term, t0, t1, y, None, s, False))(
+        problem.y0, state
+    )
+    assert "f64" not in str(jaxpr)
+    sol = solve(problem, solver, dtype=jnp.float32)
+    assert sol.result == diffrax.RESULTS.successful and sol.ys[0].dtype == jnp.float32
+    assert int(sol.solver_state.refits) >= 1
