@@ -51,8 +51,8 @@ __all__ = ["NetworkVI", "NetworkVIState"]
 class NetworkVIState(eqx.Module):
     """What `NetworkVI` carries from step to step (read it with `SaveAt(solver_state=True)`).
 
-    - `theta`: the last converged parameters (or, before the first step, the seed of the first
-      step); `fresh` says which.
+    - `theta`: the last converged parameters; before the first step they are zeros and
+      `fresh` is true (the first step is always seeded by a trajectory fit).
     - `h_prev`: the length of the step `theta` belongs to.
     - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
     - `iterations`: total nonlinear iterations over all accepted steps.
@@ -294,17 +294,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             and isinstance(self.basis, ShallowNetBasis)
         )
 
-    def _cold_seed(self, ctx: StepContext, state: NetworkVIState | None):
+    def _cold_seed(self, ctx: StepContext, state: NetworkVIState):
         """The seed from a trajectory fit, and whether it reused the previous neurons."""
-        history = None if state is None else state.history
         labels, p_end = self.initial_trajectory.labels(
-            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
+            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, state.history
         )
         targets, modulated = self.formulation.fit_targets(labels, ctx.q0)
-        if state is None:
-            previous, fresh = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype), jnp.array(True)
-        else:
-            previous, fresh = state.theta, state.fresh
+        previous, fresh = state.theta, state.fresh
         # The seed is a starting point, not part of the solution: no derivative flows through
         # it (and none may, through the while loop of `_unless_all_skip`).
         targets, previous = jax.lax.stop_gradient((targets, previous))
@@ -315,7 +311,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
             )
 
-        if self._refits() and state is not None:
+        if self._refits():
             refit, misfit = refit_output_weights(ctx.basis, problem)
             tolerance = self.refit_tolerance
             if tolerance is None:
@@ -329,10 +325,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def _warm_seed(self, ctx: StepContext, state: NetworkVIState):
         ratio = ctx.h / state.h_prev
-        advanced = ctx.basis.advance(state.theta, ratio)
-        theta = jax.tree_util.tree_map(
-            lambda a, b: jnp.where(state.fresh, a, b), state.theta, advanced
-        )
+        theta = ctx.basis.advance(state.theta, ratio)  # unused on a `fresh` state
         q1, dq1 = ctx.basis.value_and_derivative(theta, jnp.ones((), ctx.q0.dtype))
         p1 = ctx.term.momentum(ctx.t + ctx.h, q1, dq1 / ctx.h, ctx.args)
         return jax.lax.stop_gradient((theta, p1))
@@ -349,10 +342,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             "NetworkVI: the step size must be finite and non-zero (check dt0, t0 and t1).",
         )
         ctx = eqx.tree_at(lambda c: c.h, ctx, h)
-        if isinstance(self.initial_trajectory, PreviousStep):
-            (theta, _), _ = self._cold_seed(ctx, None)
-        else:
-            theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
+        # The first step seeds itself (`fresh`): computing its seed here would put a second
+        # copy of the seed fit into the compiled program.
+        theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
         zero = jnp.array(0, jnp.int32)
         return NetworkVIState(
             theta=theta,
@@ -391,7 +383,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             residual = jax.tree_util.tree_leaves(self.formulation.residual(warm, ctx))
             fmax = jnp.max(jnp.stack([jnp.max(jnp.abs(r)) for r in residual]))
             tolerance = self.initial_trajectory.accept_tolerance(ctx.q0.dtype)
-            warm_used = state.fresh | (fmax <= tolerance * _residual_scale(ctx))
+            warm_used = ~state.fresh & (fmax <= tolerance * _residual_scale(ctx))
             if made_jump is not False:
                 warm_used = warm_used & ~made_jump
             seed, refitted = jax.lax.cond(
@@ -466,7 +458,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             max_iterations=jnp.maximum(state.max_iterations, n),
             steps=state.steps + 1,
             histogram=state.histogram.at[jnp.minimum(n, self.root_find_max_steps)].add(1),
-            warm_starts=state.warm_starts + (warm_used & ~state.fresh).astype(jnp.int32),
+            warm_starts=state.warm_starts + warm_used.astype(jnp.int32),
             refits=state.refits + refitted.astype(jnp.int32),
             iteration_log=(
                 state.iteration_log.at[state.steps].set(n, mode="drop")

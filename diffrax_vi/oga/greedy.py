@@ -288,7 +288,10 @@ def _first_argmax(x: Array, index: Array) -> Array:
     return jnp.min(jnp.where(x == top, index, jnp.int32(x.shape[0]))).astype(jnp.int32)
 
 
+@eqx.filter_jit
 def _greedy_jit(config, activation, dic, nodes, yhat, width, symmetry):
+    # Jitted so that a solver whose step is traced several times (diffrax traces its loop
+    # body more than once) traces the greedy loop once.
     return _greedy(config, activation, dic, nodes, yhat, int(width), symmetry)
 
 
@@ -384,7 +387,9 @@ def _cached_dictionary(
         nodes, weights = (jnp.asarray(a, dtype) for a in arrays[:2])
         if modulation is not None:
             modulation = jnp.asarray(modulation, dtype)
-        dic = _build_dictionary(
+        # One compiled program rather than op-by-op dispatch (which compiles each operation
+        # on its own: seconds of a solver's compile time).
+        dic = eqx.filter_jit(_build_dictionary)(
             config, activation, nodes, weights, bias_interval, dict_amount, modulation, symmetry
         )
         dic = _Dictionary(*(jax.block_until_ready(jnp.asarray(v)) for v in dic))
