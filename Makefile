@@ -48,10 +48,10 @@ bench: $(STAMP)
 # Work-precision, long-time energy and stability sweep (docs/benchmarks.md); results and
 # figures go to benchmarks/results (quick) or benchmarks/results-full (full, hours).
 bench-quick: $(STAMP)
-	$(BIN)/python -m diffrax_vi.bench all --quick --out benchmarks/results
+	$(BIN)/python -m diffrax_vi.bench all --quick --jobs 2 --out benchmarks/results
 
 bench-full: $(STAMP)
-	$(BIN)/python -m diffrax_vi.bench all --full --out benchmarks/results-full
+	$(BIN)/python -m diffrax_vi.bench all --full --jobs 2 --out benchmarks/results-full
 
 clean:
 	rm -rf $(VENV) build dist site *.egg-info .pytest_cache .ruff_cache tests/artifacts

@@ -30,6 +30,7 @@ from diffrax_vi.bench import (
     work_precision,
 )
 from diffrax_vi.bench.__main__ import main as cli_main
+from diffrax_vi.nonlinear import LevenbergMarquardt
 
 
 @dataclasses.dataclass
@@ -111,16 +112,28 @@ def test_time_at_error_and_ratios():
 
 
 def test_quick_grid_is_the_reference_grid():
-    cases = quick_grid()
-    assert len(cases) == 108
+    every = quick_grid()
+    assert len(every) == 216  # once with our convergence test, once with the reference's
+    assert {c.acceptance for c in every} == {"strict", "reference"}
+    cases = [c for c in every if c.acceptance == "strict"]
+    assert len(cases) == 108 and all(c.max_iterations == 1000 for c in cases)
     for problem, (s, r) in {"harmonic_oscillator": (10, 8), "pendulum": (8, 8),
                             "double_pendulum": (10, 16)}.items():
         mine = [c for c in cases if c.problem == problem]
         assert len(mine) == 36 and {(c.width, c.nodes) for c in mine} == {(s, r)}
     assert {c.dt for c in cases} == {0.1, 1.0, 10.0}
     assert {c.activation for c in cases} == {"gelu", "tanh"}
-    lam64 = next(c for c in cases if c.dtype == "float64").lam_value
-    assert lam64 == pytest.approx(16 * np.sqrt(np.finfo(np.float64).eps))
+    # λ is the reference's shift of J + λI for RegularisedNewton; LevenbergMarquardt keeps
+    # its own damping scale.
+    newton = next(c for c in cases if c.dtype == "float64" and c.solver == "RegularisedNewton")
+    assert newton.lam_value == pytest.approx(16 * np.sqrt(np.finfo(np.float64).eps))
+    assert newton.build().root_finder.lam == pytest.approx(newton.lam_value)
+    lm = next(c for c in cases if c.solver == "LevenbergMarquardt")
+    assert lm.build().root_finder.lam == LevenbergMarquardt.lam
+    reference = next(c for c in every if c.acceptance == "reference")
+    assert reference.build().root_finder.convergence == "reference"
+    strict = dataclasses.replace(reference, acceptance="strict")
+    assert reference.solver_key() != strict.solver_key()
     with pytest.raises(ValueError, match="unknown activation"):
         StabilityCase("pendulum", 0.1, "float64", 8, 8, "swish", "LevenbergMarquardt")
 
@@ -195,6 +208,20 @@ def test_cli_report(tmp_path):
     assert os.path.exists(os.path.join(out, "work_precision.png"))
     with pytest.raises(SystemExit):
         cli_main(["work-precision", "--problems", "nope", "--out", out])
+
+
+def test_cli_parallel_parts_are_merged(tmp_path):
+    # two problems as two worker processes; their CSVs are concatenated in problem order
+    out = str(tmp_path / "out")
+    cli_main(["work-precision", "--problems", "harmonic_oscillator", "pendulum", "--solvers",
+              "scipy", "--repeats", "1", "--jobs", "2", "--no-progress", "--out", out])
+    rows = read_rows(os.path.join(out, "work_precision.csv"))
+    assert [r["problem"] for r in rows] == ["harmonic_oscillator"] * 5 + ["pendulum"] * 5
+    assert all(r["status"] == "ok" for r in rows)
+    text = open(os.path.join(out, "report.md")).read()
+    assert "Wall time of the run" in text and "pendulum" in text
+    with pytest.raises(SystemExit):
+        cli_main(["stability", "--jobs", "0", "--out", out])
 
 
 def test_harness_refuses_bad_input():

@@ -121,14 +121,17 @@ def run_stability(args) -> None:
     print(stability_table(rows))
 
 
-def write_report(out: str, command: str = "") -> str:
-    """Assemble `report.md` and the PNG figures from the CSVs found in `out`."""
+def write_report(out: str, command: str = "", elapsed: float | None = None) -> str:
+    """Assemble `report.md` and the PNG figures from the CSVs found in `out` (`elapsed`: the
+    run's wall time in seconds, stated under the command)."""
     from . import report
     from .harness import read_rows
 
     parts = ["# diffrax_vi benchmark report", ""]
     if command:
         parts += [f"Command: `{command}`", ""]
+    if elapsed is not None:
+        parts += [f"Wall time of the run: {elapsed:.0f} s ({elapsed / 60:.1f} min).", ""]
     parts += [
         f"Machine: {platform.platform()}, python {platform.python_version()}, jax "
         f"{jax.__version__} ({jax.default_backend()}), os.cpu_count() = {os.cpu_count()}.",
@@ -174,6 +177,86 @@ def write_report(out: str, command: str = "") -> str:
     return text
 
 
+def _problem_names(study: str, chosen) -> list[str]:
+    if study == "stability":
+        from .stability import quick_grid
+
+        names = list(dict.fromkeys(c.problem for c in quick_grid()))
+    else:
+        from .suites import SETTINGS
+
+        names = list(SETTINGS)
+    return [n for n in names if not chosen or n in chosen]
+
+
+def _worker_argv(argv: list[str]) -> list[str]:
+    """The options every worker inherits: the given ones less command, --out, --problems,
+    --jobs (which each worker gets its own of)."""
+    out, skip = [], False
+    for a in argv[1:]:
+        if skip and a.startswith("--"):
+            skip = False
+        if skip:
+            continue
+        if a.split("=")[0] in ("--out", "--problems", "--jobs"):
+            skip = "=" not in a
+            continue
+        out.append(a)
+    return out
+
+
+def run_parallel(args, todo: list[str], argv: list[str]) -> None:
+    """Run each (study, problem) as its own `python -m diffrax_vi.bench` process, `--jobs` at
+    a time (compilation is single-threaded, so this is what a multi-core machine buys), then
+    concatenate the parts into `--out`. Each part keeps its CSV and log under
+    `--out/parts/`; a failed part is reported and the others still land."""
+    import subprocess
+
+    from .harness import read_rows, write_rows
+
+    tasks = [(study, name) for study in todo for name in _problem_names(study, args.problems)]
+    # Long tasks first: the stability sweep and the energy runs outlast a work-precision sweep.
+    order = {"stability": 0, "energy": 1, "work-precision": 2}
+    tasks.sort(key=lambda t: order[t[0]])
+    common = _worker_argv(argv) + ["--no-progress"]
+    running: list = []
+    failed = []
+    parts_dir = os.path.join(args.out, "parts")
+    os.makedirs(parts_dir, exist_ok=True)
+    done = 0
+    while tasks or running:
+        while tasks and len(running) < args.jobs:
+            study, name = tasks.pop(0)
+            part = os.path.join(parts_dir, f"{study}-{name}")
+            os.makedirs(part, exist_ok=True)
+            log = open(os.path.join(part, "log.txt"), "w")
+            cmd = [sys.executable, "-m", "diffrax_vi.bench", study, "--problems", name,
+                   "--out", part, *common]
+            running.append((study, name, part, log, subprocess.Popen(cmd, stdout=log,
+                                                                     stderr=subprocess.STDOUT)))
+        time.sleep(0.5)
+        for item in list(running):
+            study, name, part, log, proc = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            log.close()
+            done += 1
+            if proc.returncode != 0:
+                failed.append(f"{study} {name} (exit {proc.returncode}, see {part}/log.txt)")
+            print(f"[{done}] {study} {name}: exit {proc.returncode}", file=sys.stderr)
+    for study in todo:
+        path = _fresh(os.path.join(args.out, CSV[study]))
+        for name in _problem_names(study, args.problems):
+            part = os.path.join(parts_dir, f"{study}-{name}", CSV[study])
+            if os.path.exists(part):
+                rows = read_rows(part)
+                if rows:
+                    write_rows(rows, path, append=True, columns=list(rows[0]))
+    if failed:
+        print("failed parts: " + "; ".join(failed), file=sys.stderr)
+
+
 def _long_steps(text: str) -> dict[str, int]:
     out = {"default": 10_000}
     for item in text.split(","):
@@ -205,21 +288,29 @@ def main(argv=None) -> None:
                         help="timing repeats after compilation (quick 2, full 5)")
     parser.add_argument("--long-steps", type=_long_steps, default=None,
                         help="NetworkVI steps of the energy runs: N or name=N,... "
-                             "(default: 1e5 for the harmonic oscillator, 1e4 otherwise)")
+                             "(default: 1e4 with --quick, 1e5 with --full)")
     parser.add_argument("--adaptive-max-steps", type=int, default=2**19)
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="run the studies as this many parallel processes, one per "
+                             "study and problem (default 1: in this process)")
     args = parser.parse_args(argv)
     args.quick = not args.full
     if args.repeats is None:
         args.repeats = 5 if args.full else 2
     if args.long_steps is None:
-        args.long_steps = {"default": 10_000, "harmonic_oscillator": 100_000}
+        args.long_steps = {"default": 100_000 if args.full else 10_000}
     os.makedirs(args.out, exist_ok=True)
     command = "python -m diffrax_vi.bench " + " ".join(sys.argv[1:] if argv is None else argv)
     start = time.perf_counter()
     todo = ["work-precision", "energy", "stability"] if args.command == "all" else [args.command]
     runners = {"work-precision": run_work_precision, "energy": run_energy,
                "stability": run_stability}
+    if args.jobs < 1:
+        raise SystemExit(f"--jobs must be at least 1, got {args.jobs}")
+    if args.jobs > 1 and args.command != "report":
+        run_parallel(args, todo, list(sys.argv[1:] if argv is None else argv))
+        todo = []
     for name in todo:
         if name in runners:
             t, cpu = time.perf_counter(), time.process_time()
@@ -228,7 +319,8 @@ def main(argv=None) -> None:
             # these small solves are essentially single-threaded).
             print(f"{name}: {time.perf_counter() - t:.0f} s wall, "
                   f"{time.process_time() - cpu:.0f} s CPU", file=sys.stderr)
-    write_report(args.out, command)
+    elapsed = None if args.command == "report" else time.perf_counter() - start
+    write_report(args.out, command, elapsed)
     print(f"total {time.perf_counter() - start:.0f} s; report in {args.out}/report.md",
           file=sys.stderr)
 

@@ -148,21 +148,29 @@ def energy_table(rows: Sequence[dict]) -> str:
                      "max energy error"], body)
 
 
+ACCEPTANCE_LABELS = {"strict": "ours", "reference": "the reference's"}
+
+
 def stability_table(rows: Sequence[dict]) -> str:
-    """Convergence per precision next to the reference's quick run, then per problem and
-    solver."""
-    rates = convergence_rates(rows, "dtype")
+    """Convergence per precision and convergence test next to the reference's quick run, then
+    (our test) status counts per problem and solver and the best configuration per problem."""
     body = []
-    for dtype in ("float16", "float32", "float64"):
-        if dtype not in rates:
-            continue
-        r = rates[dtype]
-        ref = REFERENCE_RATES[dtype]
-        body.append((dtype, r["cases"], r["converged"], f"{100 * r['rate']:.0f} %",
-                     f"{100 * ref[0] / ref[1]:.0f} % ({ref[0]}/{ref[1]})", r["measured"],
-                     _fmt(r["ref_err"]), _fmt(r["ham_drift"]), _fmt(r["iterations"], "g")))
-    text = markdown(["precision", "cases", "converged", "rate", "reference rate", "measured",
-                     "median ref_err", "median ham_drift", "median iter"], body)
+    for acceptance in ("strict", "reference"):
+        subset = [r for r in rows if (r.get("acceptance") or "strict") == acceptance]
+        rates = convergence_rates(subset, "dtype")
+        for dtype in ("float16", "float32", "float64"):
+            if dtype not in rates:
+                continue
+            r = rates[dtype]
+            ref = REFERENCE_RATES[dtype]
+            body.append((dtype, ACCEPTANCE_LABELS[acceptance], r["cases"], r["converged"],
+                         f"{100 * r['rate']:.0f} %",
+                         f"{100 * ref[0] / ref[1]:.0f} % ({ref[0]}/{ref[1]})", r["measured"],
+                         _fmt(r["ref_err"]), _fmt(r["ham_drift"]), _fmt(r["iterations"], "g")))
+    text = markdown(["precision", "convergence test", "cases", "converged", "rate",
+                     "reference rate", "measured", "median ref_err", "median ham_drift",
+                     "median iter"], body)
+    rows = [r for r in rows if (r.get("acceptance") or "strict") == "strict"]
     statuses = sorted({r["status"] for r in rows})
     per = []
     for problem in dict.fromkeys(r["problem"] for r in rows):
@@ -171,7 +179,7 @@ def stability_table(rows: Sequence[dict]) -> str:
             if rs:
                 per.append((problem, solver, *(sum(r["status"] == s for r in rs)
                                                for s in statuses)))
-    text += "\n\nStatus counts per problem and nonlinear solver:\n\n"
+    text += "\n\nStatus counts per problem and nonlinear solver (our convergence test):\n\n"
     text += markdown(["problem", "solver", *statuses], per)
     best = []
     for problem in dict.fromkeys(r["problem"] for r in rows):
@@ -266,6 +274,7 @@ def plot_convergence_heatmap(rows: Sequence[dict], path) -> None:
     """Convergence rate (ok / cases) per nonlinear solver × precision, one panel per problem
     and one for all problems together."""
     plt = _pyplot()
+    rows = [r for r in rows if (r.get("acceptance") or "strict") == "strict"]
     problems = list(dict.fromkeys(r["problem"] for r in rows))
     solvers = list(dict.fromkeys(r["solver"] for r in rows))
     dtypes = [d for d in ("float16", "float32", "float64") if any(r["dtype"] == d for r in rows)]

@@ -84,9 +84,10 @@ class StabilityCase:
 
     **Fields:** `problem` (a key of `PROBLEMS`), `dt`, `dtype` (`"float16"`, `"float32"`,
     `"float64"`), `nodes` (Gauss–Legendre nodes R), `width` (S), `activation` (a key of
-    `ACTIVATIONS`), `solver` (a key of `SOLVERS`), `lam` (`None`: `16·sqrt(eps(T))`),
+    `ACTIVATIONS`), `solver` (a key of `SOLVERS`), `lam` (see `lam_value`),
     `initial_guess` (a key of `INITIAL_GUESSES`), `steps` (10), `max_iterations` (the
-    per-step iteration cap).
+    per-step iteration cap), `acceptance` (`"strict"`: our convergence test, or
+    `"reference"`: the reference's, see `AbstractDampedNewton`'s `convergence`).
     """
 
     problem: str
@@ -100,6 +101,7 @@ class StabilityCase:
     initial_guess: str = "midpoint"
     steps: int = 10
     max_iterations: int = 100
+    acceptance: str = "strict"
 
     def __post_init__(self):
         for field, table in (("problem", PROBLEMS), ("activation", ACTIVATIONS),
@@ -110,25 +112,32 @@ class StabilityCase:
                 )
         if self.dtype not in ("float16", "float32", "float64"):
             raise ValueError(f"dtype must be float16, float32 or float64; got {self.dtype!r}")
+        if self.acceptance not in ("strict", "reference"):
+            raise ValueError(f"acceptance must be strict or reference; got {self.acceptance!r}")
         if not self.dt > 0 or self.steps < 1 or self.max_iterations < 1:
             raise ValueError(f"dt, steps and max_iterations must be positive: {self!r}")
 
     @property
     def lam_value(self) -> float:
-        """λ: the given one, or the reference's `16·sqrt(eps(T))`."""
+        """λ: the given one; else, for `RegularisedNewton`, the reference's `16·sqrt(eps(T))`
+        (its `regularization_factor`, the shift of `J + λI`), and for `LevenbergMarquardt`
+        its own default damping scale (`μ = λ‖F‖`: a different quantity, which the
+        reference's DogLeg has no counterpart of)."""
         if self.lam is not None:
             return self.lam
+        if self.solver == "LevenbergMarquardt":
+            return float(LevenbergMarquardt.lam)
         return float(16 * np.sqrt(np.finfo(np.dtype(self.dtype)).eps))
 
     def solver_key(self) -> tuple:
         """Cases with equal keys share one compilation (they differ only in `dt`)."""
         return (self.problem, self.dtype, self.nodes, self.width, self.activation,
                 self.solver, self.lam_value, self.initial_guess, self.steps,
-                self.max_iterations)
+                self.max_iterations, self.acceptance)
 
     def build(self) -> NetworkVI:
         """The configured `NetworkVI`."""
-        root_finder = SOLVERS[self.solver](lam=self.lam_value)
+        root_finder = SOLVERS[self.solver](lam=self.lam_value, convergence=self.acceptance)
         return NetworkVI(
             ShallowNetBasis(ACTIVATIONS[self.activation], self.width),
             GaussLegendre(self.nodes),
@@ -145,14 +154,18 @@ def quick_grid(
     dtypes: Sequence[str] = ("float64", "float32", "float16"),
     activations: Sequence[str] = ("gelu", "tanh"),
     solvers: Sequence[str] = ("LevenbergMarquardt", "RegularisedNewton"),
-    max_iterations: int = 100,
+    max_iterations: int = 1000,
+    acceptances: Sequence[str] = ("strict", "reference"),
 ) -> list[StabilityCase]:
     """The reference's quick grid: 3 dt × 3 precisions × 2 activations × 2 solvers per problem
-    (36 cases), with its per-problem S and R, λ = 16·sqrt(eps(T)) and the midpoint guess."""
+    (36 cases), with its per-problem S and R, λ = 16·sqrt(eps(T)) for `RegularisedNewton`,
+    the midpoint guess and its iteration cap (1000); run once per convergence test in
+    `acceptances` (ours, and the reference's, so that rates compare like with like)."""
     return [
         StabilityCase(p, dt, T, QUICK_NODES[p], QUICK_WIDTH[p], a, s,
-                      max_iterations=max_iterations)
-        for p, T, a, s, dt in itertools.product(problems, dtypes, activations, solvers, dts)
+                      max_iterations=max_iterations, acceptance=acc)
+        for acc, p, T, a, s, dt in itertools.product(
+            acceptances, problems, dtypes, activations, solvers, dts)
     ]
 
 
@@ -163,13 +176,15 @@ def full_grid(
 ) -> list[StabilityCase]:
     """The reference's full grid: dt ∈ {0.01, 0.1, 1, 10} × 3 precisions × R ∈ {4, 8, 16} ×
     S ∈ {4, 6, 8} × 6 activations × 2 solvers × λ ∈ {0, 1e-7, 1e-5, 1e-3, 16·sqrt(eps)} ×
-    3 initial guesses (12 960 cases per problem; hours)."""
+    3 initial guesses. λ is `RegularisedNewton`'s shift; `LevenbergMarquardt` runs once,
+    with its own damping (11 664 cases per problem; hours)."""
     lams = (0.0, 1e-7, 1e-5, 1e-3, None)
+    solvers = [("LevenbergMarquardt", None)] + [("RegularisedNewton", lam) for lam in lams]
     return [
         StabilityCase(p, dt, T, r, s, a, sv, lam, g, max_iterations=max_iterations)
-        for p, T, r, s, a, sv, lam, g, dt in itertools.product(
+        for p, T, r, s, a, (sv, lam), g, dt in itertools.product(
             problems, ("float64", "float32", "float16"), (4, 8, 16), (4, 6, 8), ACTIVATIONS,
-            SOLVERS, lams, INITIAL_GUESSES, (0.01, 0.1, 1.0, 10.0),
+            solvers, INITIAL_GUESSES, (0.01, 0.1, 1.0, 10.0),
         )
     ]
 
@@ -239,8 +254,8 @@ def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
 
 SWEEP_COLUMNS = (
     "problem", "dt", "dtype", "nodes", "width", "activation", "solver", "lam", "initial_guess",
-    "steps", "max_iterations", "status", "ref_err", "ham_drift", "iterations", "steps_done",
-    "total_s", "message",
+    "steps", "max_iterations", "acceptance", "status", "ref_err", "ham_drift", "iterations",
+    "steps_done", "total_s", "message",
 )
 
 
