@@ -145,6 +145,11 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         """The step from the Jacobian and the residual."""
         raise NotImplementedError
 
+    def _reference_mode(self):
+        """Whether to stop the reference's way (`convergence`); a subclass may return a
+        traced boolean so that one compiled program serves both tests."""
+        return self.convergence == "reference"
+
     def _tols(self, dtype) -> dict[str, float]:
         tol = default_tolerances(dtype)
         for name in ("ftol", "floor", "otol"):
@@ -311,16 +316,17 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         # A reused Jacobian converges slowly, so a small change of the outputs says nothing
         # after its iterations: the floor tests trust only an exact Newton iteration.
         converged = (fmax <= tol["ftol"] * scale) | (at_floor & state.exact)
-        if self.convergence == "reference":
+        stalled = (state.stalls > self.max_stalls) | (state.idle >= self.patience)
+        gave_up = ~converged & stalled
+        reference = self._reference_mode()
+        if reference is not False:
             eps = jnp.finfo(dtype).eps
-            converged = (fmax <= 8 * eps) | (
+            # The reference's test; a stalled solve is returned as if converged.
+            converged_ref = (fmax <= 8 * eps) | stalled | (
                 state.still & (fmax <= 8 * eps + jnp.sqrt(eps) * state.f0)
             )
-        gave_up = ~converged & ((state.stalls > self.max_stalls) | (state.idle >= self.patience))
-        if self.convergence == "reference":
-            # The reference returns a stalled iterate to the integrator as if converged.
-            converged = converged | gave_up
-            gave_up = jnp.array(False)
+            converged = jnp.where(reference, converged_ref, converged)
+            gave_up = gave_up & ~jnp.asarray(reference)
         result = optx.RESULTS.where(gave_up, optx.RESULTS.nonlinear_divergence, state.result)
         failed = result != optx.RESULTS.successful
         return converged | failed, result

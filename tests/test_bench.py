@@ -133,7 +133,7 @@ def test_quick_grid_is_the_reference_grid():
     reference = next(c for c in every if c.acceptance == "reference")
     assert reference.build().root_finder.convergence == "reference"
     strict = dataclasses.replace(reference, acceptance="strict")
-    assert reference.solver_key() != strict.solver_key()
+    assert reference.solver_key() == strict.solver_key()  # one compilation serves both
     with pytest.raises(ValueError, match="unknown activation"):
         StabilityCase("pendulum", 0.1, "float64", 8, 8, "swish", "LevenbergMarquardt")
 
@@ -183,14 +183,21 @@ def test_stability_sweep_smoke(tmp_path):
     base = StabilityCase("harmonic_oscillator", 0.1, "float64", 8, 10, "tanh",
                          "LevenbergMarquardt")
     path = str(tmp_path / "stability.csv")
-    rows = stability_sweep([dataclasses.replace(base, dt=10.0), base], csv_path=path)
+    lax = dataclasses.replace(base, dt=10.0, acceptance="reference")
+    rows = stability_sweep([dataclasses.replace(base, dt=10.0), base, lax], csv_path=path)
+    # the reference's accounting returns the stalled dt = 10 solve as converged (same
+    # compilation, the test is a traced flag)
+    (lax_row,) = [r for r in rows if r["acceptance"] == "reference"]
+    assert lax_row["status"] == "ok" and lax_row["steps_done"] == 10
+    rows = [r for r in rows if r["acceptance"] == "strict"]
     by = {r["dt"]: r for r in rows}
     ok = by[0.1]
     assert ok["status"] == "ok", ok
     assert ok["ref_err"] < 1e-10 and ok["ham_drift"] < 1e-10 and ok["steps_done"] == 10
     assert by[10.0]["status"] in STATUSES and by[10.0]["status"] != "ok"
     assert by[10.0]["steps_done"] < 10 and by[10.0].get("ref_err") is None
-    assert [r["status"] for r in read_rows(path)] == [r["status"] for r in rows]
+    assert [r["status"] for r in read_rows(path) if r["acceptance"] == "strict"] == [
+        r["status"] for r in rows]
     rates = convergence_rates(rows)["float64"]
     assert (rates["cases"], rates["converged"], rates["rate"]) == (2, 1, 0.5)
     report.plot_convergence_heatmap(rows, tmp_path / "heat.png")

@@ -133,11 +133,15 @@ class StabilityCase:
         """Cases with equal keys share one compilation (they differ only in `dt`)."""
         return (self.problem, self.dtype, self.nodes, self.width, self.activation,
                 self.solver, self.lam_value, self.initial_guess, self.steps,
-                self.max_iterations, self.acceptance)
+                self.max_iterations)
 
-    def build(self) -> NetworkVI:
-        """The configured `NetworkVI`."""
-        root_finder = SOLVERS[self.solver](lam=self.lam_value, convergence=self.acceptance)
+    def build(self, reference=None) -> NetworkVI:
+        """The configured `NetworkVI`. `reference` (a possibly traced boolean) overrides
+        `acceptance`, so that both convergence tests share one compiled program."""
+        if reference is None:
+            root_finder = SOLVERS[self.solver](lam=self.lam_value, convergence=self.acceptance)
+        else:
+            root_finder = _SWITCHED[self.solver](lam=self.lam_value, reference=reference)
         return NetworkVI(
             ShallowNetBasis(ACTIVATIONS[self.activation], self.width),
             GaussLegendre(self.nodes),
@@ -189,17 +193,36 @@ def full_grid(
     ]
 
 
+class _SwitchedLevenbergMarquardt(LevenbergMarquardt):
+    reference: Any = False
+
+    def _reference_mode(self):
+        return self.reference
+
+
+class _SwitchedRegularisedNewton(RegularisedNewton):
+    reference: Any = False
+
+    def _reference_mode(self):
+        return self.reference
+
+
+_SWITCHED = {"LevenbergMarquardt": _SwitchedLevenbergMarquardt,
+             "RegularisedNewton": _SwitchedRegularisedNewton}
+
+
 class _Compiled:
-    """A compiled 10-step solve for one `solver_key`; `dt` enters through `StepTo`'s times."""
+    """A compiled 10-step solve for one `solver_key`; `dt` enters through `StepTo`'s times and
+    the convergence test as a traced flag."""
 
     def __init__(self, case: StabilityCase):
         self.problem = PROBLEMS[case.problem](dtype=np.dtype(case.dtype))
-        solver = case.build()
         term, args = self.problem.term, self.problem.args
         steps = case.steps
 
         @eqx.filter_jit
-        def solve(y0, ts):
+        def solve(y0, ts, reference):
+            solver = case.build(reference=reference)
             return diffrax.diffeqsolve(
                 term, solver, ts[0], ts[-1], None, y0, args=args,
                 saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
@@ -229,7 +252,9 @@ def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
         problem = compiled.problem
         dtype = np.dtype(case.dtype)
         ts64 = problem.t0 + case.dt * np.arange(case.steps + 1, dtype=np.float64)
-        sol = jax.block_until_ready(compiled.solve(problem.y0, jnp.asarray(ts64, dtype)))
+        reference = jnp.asarray(case.acceptance == "reference")
+        sol = jax.block_until_ready(
+            compiled.solve(problem.y0, jnp.asarray(ts64, dtype), reference))
         row["total_s"] = time.perf_counter() - start
         row["status"] = classify(sol, iteration_cap=case.max_iterations)
         state = sol.solver_state
@@ -267,7 +292,7 @@ def stability_sweep(
 ) -> list[dict[str, Any]]:
     """Run every case (grouped so that cases sharing a compilation run together), appending
     each row to `csv_path` as soon as it is measured. `progress` is a tqdm-like object."""
-    cases = sorted(cases, key=lambda c: (repr(c.solver_key()), c.dt))
+    cases = sorted(cases, key=lambda c: (repr(c.solver_key()), c.acceptance, c.dt))
     if csv_path is not None:
         write_rows([], csv_path, columns=SWEEP_COLUMNS)
     cache: dict = {}
