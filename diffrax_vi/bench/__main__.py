@@ -80,11 +80,17 @@ def run_work_precision(args) -> None:
     print(ratio_markdown(ratio_table(rows)))
 
 
+def _energy_problems(args, settings) -> list[str]:
+    if args.problems or args.full:
+        return _problems(args, settings)
+    return [n for n, s in settings.items() if s.quick_energy]
+
+
 def run_energy(args) -> None:
     from .harness import Adaptive, long_time_energy
     from .suites import SETTINGS, networkvi_entries, peer_entries
 
-    names = _problems(args, SETTINGS)
+    names = _energy_problems(args, SETTINGS)
     path = _fresh(os.path.join(args.out, CSV["energy"]))
     rtols = (1e-8, 1e-10, 1e-12) if args.quick else (1e-6, 1e-8, 1e-10, 1e-12, 1e-14)
     peers = [e for e in peer_entries(False) if isinstance(e, Adaptive)
@@ -177,7 +183,7 @@ def write_report(out: str, command: str = "", elapsed: float | None = None) -> s
     return text
 
 
-def _problem_names(study: str, chosen) -> list[str]:
+def _problem_names(study: str, chosen, full: bool = False) -> list[str]:
     if study == "stability":
         from .stability import quick_grid
 
@@ -186,6 +192,8 @@ def _problem_names(study: str, chosen) -> list[str]:
         from .suites import SETTINGS
 
         names = list(SETTINGS)
+        if study == "energy" and not chosen and not full:
+            names = [n for n in names if SETTINGS[n].quick_energy]
     return [n for n in names if not chosen or n in chosen]
 
 
@@ -214,7 +222,8 @@ def run_parallel(args, todo: list[str], argv: list[str]) -> None:
 
     from .harness import read_rows, write_rows
 
-    tasks = [(study, name) for study in todo for name in _problem_names(study, args.problems)]
+    tasks = [(study, name) for study in todo
+             for name in _problem_names(study, args.problems, args.full)]
     # Long tasks first: the stability sweep and the energy runs outlast a work-precision sweep.
     order = {"stability": 0, "energy": 1, "work-precision": 2}
     tasks.sort(key=lambda t: order[t[0]])
@@ -247,7 +256,7 @@ def run_parallel(args, todo: list[str], argv: list[str]) -> None:
             print(f"[{done}] {study} {name}: exit {proc.returncode}", file=sys.stderr)
     for study in todo:
         path = _fresh(os.path.join(args.out, CSV[study]))
-        for name in _problem_names(study, args.problems):
+        for name in _problem_names(study, args.problems, args.full):
             part = os.path.join(parts_dir, f"{study}-{name}", CSV[study])
             if os.path.exists(part):
                 rows = read_rows(part)
