@@ -131,6 +131,11 @@ class AbstractFormulation(eqx.Module):
         by `τ(1 − τ)` there."""
         raise NotImplementedError
 
+    def jacobian(self, x: tuple[PyTree, Array], ctx: StepContext) -> Array | None:
+        """The Jacobian of `residual` assembled by blocks, or `None` where this formulation
+        and basis have no structured form (the root finder then differentiates)."""
+        return None
+
 
 class FreeEndpoints(AbstractFormulation):
     """Free-endpoint formulation: unknowns `(θ, p_{n+1})`, continuity as an equation."""
@@ -160,6 +165,87 @@ class FreeEndpoints(AbstractFormulation):
     def end_state(self, x, ctx):
         theta, p1 = x
         return ctx.basis.evaluate(theta, jnp.ones((), q_dtype(ctx))), p1
+
+    def jacobian(self, x, ctx) -> Array | None:
+        """The Jacobian of `residual` by blocks, for a `coordinatewise` basis (else `None`), as
+        a dense matrix in the order of `ravel_pytree` (unknowns `(θ, p_{n+1})`, equations
+        `(r_θ, continuity)`).
+
+        With stage values `Q_jd = q_d(c_j)`, `V_jd = q_d'(c_j)` and their gradients `A_jd`,
+        `B_jd` in `θ_d` (coordinate `d` depends on `θ_d` alone):
+
+            ∂r_θd/∂θ_e = δ_de ∇²ψ_d − Σ_j b_j [A_jd (h ∂f_d/∂q_e A_je + ∂f_d/∂v_e B_je)
+                                            + B_jd (∂ϑ_d/∂q_e A_je + ∂ϑ_d/∂v_e B_je / h)]
+
+        where `ψ_d(θ_d) = p_{n+1,d} q_d(1) − p_{n,d} q_d(0) − Σ_j b_j (h f_jd Q_jd + ϑ_jd V_jd)`
+        with `(ϑ, f)` held fixed, and the Lagrangian's second derivatives come from one
+        `jax.jacfwd` of `(ϑ, f)` per node. Forward mode through the whole residual instead
+        pushes all `D·P` tangents through every coordinate: this is `D` times less work in the
+        network part (the 16-particle Toda lattice, double pendulum: see `benchmarks/speed.py`).
+        """
+        basis = ctx.basis
+        if not getattr(basis, "coordinatewise", False):
+            return None
+        theta, p1 = x
+        dtype = q_dtype(ctx)
+        nodes = ctx.nodes.astype(dtype)
+        h = ctx.h
+        b = ctx.weights.astype(dtype)
+
+        def g(theta_d, tau):  # one coordinate of the curve
+            return basis.evaluate(theta_d[:, None], tau)[0]
+
+        def g_and_slope(theta_d, tau):
+            return jax.jvp(lambda s: g(theta_d, s), (tau,), (jnp.ones_like(tau),))
+
+        # Stage values (R, D) and their gradients A, B (R, D, P) in θ_d.
+        def stages_d(theta_d):
+            return jax.vmap(lambda tau: g_and_slope(theta_d, tau))(nodes)
+
+        (q, dq), (A, B) = jax.vmap(
+            lambda th: (stages_d(th), jax.jacfwd(stages_d)(th)), in_axes=1, out_axes=1
+        )(theta)
+        ts = ctx.t + ctx.nodes * h
+        v = dq / h
+
+        def mf(t, qj, vj):
+            return ctx.term.momentum_and_force(t, qj, vj, ctx.args)
+
+        (p, f), ((pq, pv), (fq, fv)) = jax.vmap(
+            lambda t, qj, vj: (mf(t, qj, vj), jax.jacfwd(mf, argnums=(1, 2))(t, qj, vj))
+        )(ts, q, v)
+        p, f = jax.lax.stop_gradient((p, f))
+
+        def psi(theta_d, p_d, f_d, p0_d, p1_d):
+            zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
+            qd, dqd = stages_d(theta_d)
+            return (p1_d * g(theta_d, one) - p0_d * g(theta_d, zero)
+                    - jnp.sum(b * (h * f_d * qd + p_d * dqd)))
+
+        hess = jax.vmap(jax.hessian(psi), in_axes=(1, 1, 1, 0, 0))(theta, p, f, ctx.p0, p1)
+        n_p, dim = theta.shape
+        eye = jnp.eye(dim, dtype=dtype)
+        # coupling[p, d, q, e] = ∂(Σ_j b_j (h f_jd A_jdp + ϑ_jd B_jdp))/∂θ_qe through (ϑ, f)
+        coupling = (
+            jnp.einsum("j,jdp,jde,jeq->pdqe", h * b, A, fq, A)
+            + jnp.einsum("j,jdp,jde,jeq->pdqe", b, A, fv, B)
+            + jnp.einsum("j,jdp,jde,jeq->pdqe", b, B, pq, A)
+            + jnp.einsum("j,jdp,jde,jeq->pdqe", b / h, B, pv, B)
+        )
+        block = jnp.einsum("dpq,de->pdqe", hess, eye) - coupling
+        one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
+        grad_end = jax.vmap(jax.grad(g), in_axes=(1, None), out_axes=1)(theta, one)  # (P, D)
+        grad_start = jax.vmap(jax.grad(g), in_axes=(1, None), out_axes=1)(theta, zero)
+        n = n_p * dim
+        top = jnp.concatenate(
+            [block.reshape(n, n), jnp.einsum("pd,de->pde", grad_end, eye).reshape(n, dim)],
+            axis=1,
+        )
+        bottom = jnp.concatenate(
+            [-jnp.einsum("pe,de->dpe", grad_start, eye).reshape(dim, n),
+             jnp.zeros((dim, dim), dtype)], axis=1,
+        )
+        return jnp.concatenate([top, bottom], axis=0)
 
     def unknowns(self, theta, q_end, p_end):
         del q_end

@@ -130,8 +130,10 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
     convergence: str = eqx.field(static=True, default="strict")
 
     def __check_init__(self):
-        if self.jacobian not in ("rev", "fwd"):
-            raise ValueError(f"jacobian must be 'rev' or 'fwd', got {self.jacobian!r}")
+        if self.jacobian not in ("rev", "fwd", "structured"):
+            raise ValueError(
+                f"jacobian must be 'fwd', 'rev' or 'structured', got {self.jacobian!r}"
+            )
         if self.convergence not in ("strict", "reference"):
             raise ValueError(
                 f"convergence must be 'strict' or 'reference', got {self.convergence!r}"
@@ -192,11 +194,24 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             f, aux = residual(v)
             return f, (f, aux)
 
-        jacobian = jax.jacrev if self.jacobian == "rev" else jax.jacfwd
+        if self.jacobian == "structured":
+            given = options.get("jacobian")
+            if given is None:
+                raise ValueError(
+                    "jacobian='structured' needs the caller to pass the Jacobian as "
+                    "options['jacobian'] (a function of the unknowns); NetworkVI does so for a "
+                    "ShallowNetBasis with free endpoints"
+                )
 
-        def fresh():
-            jac, (f, aux) = jacobian(residual_and_copy, has_aux=True)(flat_y)
-            return jac, f, aux
+            def fresh():
+                f, aux = residual(flat_y)
+                return given(y).astype(dtype), f, aux
+        else:
+            jacobian = jax.jacrev if self.jacobian == "rev" else jax.jacfwd
+
+            def fresh():
+                jac, (f, aux) = jacobian(residual_and_copy, has_aux=True)(flat_y)
+                return jac, f, aux
 
         if self.reuse_jacobian > 0:
             # The residual at the iterate is already in the state; evaluate `aux` alongside.
@@ -344,8 +359,10 @@ _COMMON_ARGS = """
     - `settle`: iterations without the residual halving before settled outputs end the
       solve (default 3; fewer iterations per step, results that move at the floor level).
     - `patience`: iterations without the residual halving before giving up.
-    - `jacobian`: `"fwd"` (default, `jax.jacfwd`) or `"rev"` (`jax.jacrev`): how the dense
-      Jacobian is formed. Both give the same matrix up to rounding.
+    - `jacobian`: `"fwd"` (default, `jax.jacfwd`), `"rev"` (`jax.jacrev`) or `"structured"`
+      (the caller's `options["jacobian"]`, a function of the unknowns returning the dense
+      matrix: `NetworkVI` assembles it by coordinate blocks for a `ShallowNetBasis` with free
+      endpoints, `FreeEndpoints.jacobian`). All give the same matrix up to rounding.
     - `reuse_jacobian`: keep the Jacobian of the previous iteration while its full step is
       accepted and cuts the residual at least four-fold, for at most this many iterations in
       a row (default 0: a fresh Jacobian on every iteration); a fresh one is evaluated

@@ -236,6 +236,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
                 f"{self.error_estimate!r}"
             )
+        if (
+            isinstance(self.root_finder, AbstractDampedNewton)
+            and self.root_finder.jacobian == "structured"
+            and not (isinstance(self.formulation, FreeEndpoints) and self.basis.coordinatewise)
+        ):
+            raise ValueError(
+                "jacobian='structured' assembles the Jacobian by coordinate blocks, which needs "
+                "free endpoints and a basis whose coordinates have their own parameters "
+                f"(ShallowNetBasis, LagrangeBasis); got {self.basis!r} with "
+                f"{type(self.formulation).__name__}"
+            )
         if not isinstance(self.reuse_neurons, bool):
             raise TypeError(f"reuse_neurons must be True or False, got {self.reuse_neurons!r}")
         if self.reuse_neurons and not self._refits():
@@ -400,6 +411,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             options=dict(
                 scale=_residual_scale(ctx),
                 outputs=lambda x: self.formulation.end_state(x, ctx),
+                jacobian=lambda x: self.formulation.jacobian(x, ctx),
             ),
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,
@@ -510,7 +522,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             seed,
             companion,
             options=dict(
-                scale=_residual_scale(ctx), outputs=lambda x: form.end_state(x, companion)
+                scale=_residual_scale(ctx), outputs=lambda x: form.end_state(x, companion),
+                jacobian=lambda x: form.jacobian(x, companion),
             ),
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,

@@ -22,6 +22,7 @@ from diffrax_vi.formulation import (
 from diffrax_vi.interpolation import lagrange_weights
 from diffrax_vi.nonlinear import LevenbergMarquardt, RegularisedNewton, default_tolerances
 from diffrax_vi.quadrature import GaussLegendre, Simpson
+from diffrax_vi.seeding.fit import LeastSquaresFit
 from diffrax_vi.seeding.trajectories import implicit_midpoint
 from diffrax_vi.terms import IODETerm, LagrangianTerm
 
@@ -735,3 +736,46 @@ def test_implicit_midpoint_iode_oscillator_matches_lagrangian():
     b = _midpoint(lag, 0.0, 1.0, [0.5], [0.3], 6)
     np.testing.assert_allclose(np.asarray(a[0]), np.asarray(b[0]), rtol=1e-14)
     np.testing.assert_allclose(np.asarray(a[1]), np.asarray(b[1]), rtol=1e-14)
+
+
+# -- the Jacobian by coordinate blocks (`jacobian="structured"`) ------------------------------
+STRUCTURED_CASES = [
+    ("harmonic_oscillator", dvi.ShallowNetBasis(dvi.tanh, 6), 8),
+    ("double_pendulum", dvi.ShallowNetBasis(dvi.gelu, 5), 6),
+    ("pendulum", dvi.ShallowNetBasis(dvi.tanh, 4, symmetry=dvi.MirrorPairs()), 8),
+    ("toda_lattice", dvi.ShallowNetBasis(dvi.tanh, 3), 4),
+    ("kepler", dvi.LagrangeBasis(4), 5),
+]
+
+
+@pytest.mark.parametrize("name,basis,nodes", STRUCTURED_CASES, ids=[c[0] for c in STRUCTURED_CASES])
+def test_structured_jacobian_matches_autodiff(name, basis, nodes):
+    from jax.flatten_util import ravel_pytree
+
+    problem = getattr(problems, name)(dtype=F64)
+    seed = {} if isinstance(basis, dvi.ShallowNetBasis) else dict(initial_guess=LeastSquaresFit())
+    solver = dvi.NetworkVI(basis, GaussLegendre(nodes), **seed)
+    ctx = solver._context(problem.term, 0.3, 0.45, problem.y0, problem.args)
+    dim = ctx.q0.shape[0]
+    theta = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (basis.num_params(), dim), F64)
+    x = (theta, ctx.p0 + 0.1)
+    flat, unravel = ravel_pytree(x)
+    form = FreeEndpoints()
+    dense = jax.jit(jax.jacfwd(lambda v: ravel_pytree(form.residual(unravel(v), ctx))[0]))(flat)
+    blocks = jax.jit(lambda v: form.jacobian(unravel(v), ctx))(flat)
+    assert blocks.shape == dense.shape and blocks.dtype == F64
+    np.testing.assert_allclose(blocks, dense, rtol=0, atol=1e-14 * float(jnp.max(jnp.abs(dense))))
+    # formulations / bases without the block form say so
+    assert InterpolatingEndpoints().jacobian(x, ctx) is None
+
+
+def test_structured_jacobian_needs_the_callers_matrix():
+    with pytest.raises(ValueError, match="options\\['jacobian'\\]"):
+        _find(well_posed, LevenbergMarquardt(jacobian="structured"), jnp.zeros(10, F64))
+    given = lambda y: jax.jacfwd(lambda v: well_posed(v, None))(y)
+    sol = _find(well_posed, LevenbergMarquardt(jacobian="structured"), jnp.zeros(10, F64),
+                options=dict(jacobian=given))
+    assert sol.result == optx.RESULTS.successful
+    assert float(jnp.max(jnp.abs(sol.value - _XSTAR))) <= 1e-13
+    with pytest.raises(ValueError, match="jacobian must be"):
+        LevenbergMarquardt(jacobian="blocks")

@@ -276,6 +276,22 @@ def test_plain_ode_term_is_refused():
         diffrax.diffeqsolve(term, shallow(dvi.tanh, 4, 4), 0.0, 0.1, 0.1, y0)
 
 
+def test_structured_jacobian_solves_like_the_dense_one(ho_tanh):
+    """The block-assembled Jacobian is the same matrix up to rounding, so the solve reaches the
+    same floor-level accuracy (the iteration path differs at rounding level)."""
+    problem, dense = ho_tanh
+    rf = dvi.LevenbergMarquardt(jacobian="structured")
+    sol = solve(problem, shallow(dvi.tanh, 10, 8, root_finder=rf))
+    assert sol.result == diffrax.RESULTS.successful
+    assert max_relative_error(problem, sol) <= 5e-13
+    assert abs(int(sol.solver_state.iterations) - int(dense.solver_state.iterations)) <= 10
+    # the error estimate's companion cGVI (a LagrangeBasis) uses the block form too
+    est = shallow(dvi.tanh, 10, 8, root_finder=rf, error_estimate=3)
+    assert solve(problem, est).result == diffrax.RESULTS.successful
+    with pytest.raises(ValueError, match="structured"):
+        shallow(dvi.tanh, 10, 8, root_finder=rf, formulation=dvi.InterpolatingEndpoints())
+
+
 FAST = dict(
     reuse_neurons=True,
     root_finder=dvi.LevenbergMarquardt(reuse_jacobian=3, settle=0, otol=2.0**-39),

@@ -25,6 +25,10 @@ class AbstractBasis(eqx.Module):
     can_advance: ClassVar[bool] = False
     linear: ClassVar[bool] = False
 
+    #: Whether coordinate `d` of the curve depends on column `d` of `θ` (shape `(P, D)`)
+    #: alone, which lets `FreeEndpoints.jacobian` assemble the step Jacobian by blocks.
+    coordinatewise: ClassVar[bool] = False
+
     def num_params(self) -> int:
         """Number of parameters of the curve of one coordinate."""
         raise NotImplementedError

@@ -47,6 +47,7 @@ class LagrangeBasis(AbstractBasis):
 
     can_advance: ClassVar[bool] = True
     linear: ClassVar[bool] = True
+    coordinatewise: ClassVar[bool] = True
 
     def __check_init__(self):
         if not isinstance(self.degree, int) or isinstance(self.degree, bool) or self.degree < 1:

@@ -4,6 +4,7 @@ mirrored neuron pairs (the reference's reversible variants)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -68,6 +69,7 @@ class ShallowNetBasis(AbstractBasis):
     width: int = eqx.field(static=True)
     symmetry: AbstractSymmetry = eqx.field(static=True, default=NoSymmetry())
     derivatives: str = eqx.field(static=True, default="autodiff")
+    coordinatewise: ClassVar[bool] = True
 
     def __check_init__(self):
         if not callable(self.activation):

@@ -173,7 +173,12 @@ def write_report(out: str, command: str = "", elapsed: float | None = None) -> s
         parts += [
             "## Stability sweep", "",
             "Converged = status `ok`; `maxiter` and failures count as not converged. The "
-            "reference's rates are from its quick run (problems_and_benchmarks §2.6). "
+            "reference's rates are from its quick run (problems_and_benchmarks §2.6). Every "
+            "case runs twice: with our convergence test (a step is converged at a root, up to "
+            "its residual floor) and with the reference's (`convergence=\"reference\"`: a "
+            "residual `sqrt(eps)` below the seed's once the iterate stops moving, and a stalled "
+            "solve returned as converged), which is how the reference's rates were counted. "
+            "The heatmap and the status counts use our test. "
             "![heatmap](stability_heatmap.png)", "",
             report.stability_table(rows), "",
         ]
