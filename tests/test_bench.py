@@ -136,6 +136,9 @@ def test_quick_grid_is_the_reference_grid():
     assert reference.solver_key() == strict.solver_key()  # one compilation serves both
     with pytest.raises(ValueError, match="unknown activation"):
         StabilityCase("pendulum", 0.1, "float64", 8, 8, "swish", "LevenbergMarquardt")
+    with pytest.raises(ValueError, match="acceptance"):
+        StabilityCase("pendulum", 0.1, "float64", 8, 8, "tanh", "LevenbergMarquardt",
+                      acceptance="loose")
 
 
 @pytest.mark.slow

@@ -769,6 +769,17 @@ def test_structured_jacobian_matches_autodiff(name, basis, nodes):
     assert InterpolatingEndpoints().jacobian(x, ctx) is None
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16], ids=lambda d: d.__name__)
+def test_structured_jacobian_keeps_the_working_dtype(dtype):
+    problem = problems.double_pendulum(dtype=dtype)
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 3), GaussLegendre(4))
+    ctx = solver._context(problem.term, dtype(0.0), dtype(0.1), problem.y0, problem.args)
+    theta = jnp.full((solver.basis.num_params(), 2), 0.3, dtype)
+    fn = lambda th: FreeEndpoints().jacobian((th, ctx.p0), ctx)
+    assert jax.jit(fn)(theta).dtype == dtype
+    assert "f64" not in str(jax.make_jaxpr(fn)(theta))
+
+
 def test_structured_jacobian_needs_the_callers_matrix():
     with pytest.raises(ValueError, match="options\\['jacobian'\\]"):
         _find(well_posed, LevenbergMarquardt(jacobian="structured"), jnp.zeros(10, F64))
