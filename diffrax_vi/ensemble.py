@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -70,10 +71,44 @@ def _normalise_axes(in_axes, nargs: int) -> tuple:
     return in_axes
 
 
+def _resolve_batch_size(batch_size, mesh: Mesh | None) -> int | None:
+    if batch_size == "auto":
+        devices = jax.devices() if mesh is None else list(mesh.devices.flat)
+        return 1 if all(d.platform == "cpu" for d in devices) else None
+    if batch_size is None:
+        return None
+    if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1:
+        raise ValueError(
+            f"batch_size must be 'auto', None or a positive integer, got {batch_size!r}"
+        )
+    return batch_size
+
+
+def _chunked(fn: Callable, in_axes: tuple, batch_size: int | None) -> Callable:
+    """`fn` over the leading axis of the mapped arguments: `vmap` over all members at once
+    (`batch_size=None`), or `lax.map` over chunks of `batch_size` vmapped members."""
+    if batch_size is None:
+        return jax.vmap(fn, in_axes=in_axes)
+
+    def mapped(*args):
+        batched = tuple(a for a, axis in zip(args, in_axes, strict=True) if axis is not None)
+
+        def member(xs):
+            it = iter(xs)
+            pairs = zip(args, in_axes, strict=True)
+            return fn(*(a if axis is None else next(it) for a, axis in pairs))
+
+        return jax.lax.map(member, batched, batch_size=None if batch_size == 1 else batch_size)
+
+    return mapped
+
+
 @functools.lru_cache(maxsize=32)
-def _compiled(fn: Callable, in_axes: tuple, mesh: Mesh | None, axis_name: str) -> Callable:
+def _compiled(
+    fn: Callable, in_axes: tuple, mesh: Mesh | None, axis_name: str, batch_size: int | None
+) -> Callable:
     """The jitted batched function; cached so that repeated calls do not retrace."""
-    batched = jax.vmap(fn, in_axes=in_axes)
+    batched = _chunked(fn, in_axes, batch_size)
     if mesh is None:
         return jax.jit(batched)
     specs = tuple(PartitionSpec(axis_name) if a == 0 else PartitionSpec() for a in in_axes)
@@ -89,6 +124,7 @@ def ensemble(
     *args: PyTree,
     in_axes: int | None | Sequence[int | None] = 0,
     mesh: Mesh | None = None,
+    batch_size: int | None | Literal["auto"] = "auto",
 ) -> PyTree:
     """Run `fn` on every member of an ensemble in one compiled program.
 
@@ -97,16 +133,23 @@ def ensemble(
     ensemble along their leading axis (the same length `B` for all); entries `None` are shared
     by all members. The result is `fn`'s output with a leading axis of length `B`.
 
-    Without `mesh` this is `jax.jit(jax.vmap(fn))` on the default device: all members advance
-    together, and every loop of the step (seed fit, Newton iterations, line search) runs as
-    long as its slowest member. (On a 2-core CPU a batch of 1024 oscillator solves measured
-    about 10x *slower* than a Python loop of single solves, `benchmarks/speed.py`: check the
-    throughput on your hardware before relying on batching.) With a `mesh` (see
-    `ensemble_mesh`) the ensemble is split along the mesh's single axis with `jax.shard_map`:
-    each device solves its slice with `vmap`, with no communication between devices. Members
-    are independent, so the numbers are those of the unsharded run (up to rounding in the last
-    bit). If `B` is not a multiple of the number of devices, the ensemble is padded with copies
-    of its last member, which are dropped from the result.
+    **How members share the hardware** (`batch_size`). The members' solves are independent
+    but not alike: their Newton solves take different numbers of iterations, and some steps
+    need a fresh seed fit where others reuse the last one. Vectorised with `jax.vmap`
+    (`batch_size=None`), all members advance in lockstep and every loop runs as long as its
+    slowest member, which pays on accelerators (many lanes, latency-bound single solves) and
+    costs on CPUs, whose single solves are already compute-bound. With an integer
+    `batch_size = k` the ensemble runs as a compiled loop (`jax.lax.map`) over chunks of `k`
+    vmapped members; `k = 1` solves one member after another inside one program. The default
+    `"auto"` picks `1` when every device is a CPU and `None` otherwise. Measured on a 2-core
+    CPU (`benchmarks/speed.py`, 10-step oscillator solves): `1` runs at the throughput of a
+    Python loop of single jitted solves, full `vmap` several times slower.
+
+    With a `mesh` (see `ensemble_mesh`) the ensemble is split along the mesh's single axis with
+    `jax.shard_map`: each device solves its slice as above, with no communication between
+    devices. Members are independent, so the numbers are those of the unsharded run (up to
+    rounding in the last bit). If `B` is not a multiple of the number of devices, the ensemble
+    is padded with copies of its last member, which are dropped from the result.
 
     Several hosts: call `jax.distributed.initialize()` on every process first, build the mesh
     from `jax.devices()` (all devices of all processes) and call `ensemble` with the same
@@ -114,8 +157,8 @@ def ensemble(
     reads the members on its own devices from `result.addressable_shards` (or all of them with
     `jax.experimental.multihost_utils.process_allgather`).
 
-    The compiled program is cached per `(fn, in_axes, mesh)`: pass the same function object
-    to reuse it (a new `lambda` on every call compiles again).
+    The compiled program is cached per `(fn, in_axes, mesh, batch_size)`: pass the same
+    function object to reuse it (a new `lambda` on every call compiles again).
 
     **Arguments:**
 
@@ -123,6 +166,8 @@ def ensemble(
     - `args`: the arguments, batched along their leading axis where `in_axes` is `0`.
     - `in_axes`: `0` (default: every argument is batched), `None`, or one entry per argument.
     - `mesh`: a one-axis `jax.sharding.Mesh` to split the ensemble over; default: no sharding.
+    - `batch_size`: `"auto"` (default), `None` (vmap over all members of a device at once) or
+      a positive integer (a compiled loop over chunks of that many vmapped members).
 
     **Returns:**
 
@@ -133,12 +178,14 @@ def ensemble(
     in_axes = _normalise_axes(in_axes, len(args))
     size = _batch_size(args, in_axes)
     if mesh is None:
-        return _compiled(fn, in_axes, None, _AXIS)(*args)
+        chunk = _resolve_batch_size(batch_size, None)
+        return _compiled(fn, in_axes, None, _AXIS, chunk)(*args)
     if not isinstance(mesh, Mesh) or len(mesh.axis_names) != 1:
         raise ValueError(
             f"mesh must be a one-axis jax.sharding.Mesh (see ensemble_mesh), got {mesh!r}"
         )
     (axis_name,) = mesh.axis_names
+    chunk = _resolve_batch_size(batch_size, mesh)
     ndev = mesh.devices.size
     padded = -(-size // ndev) * ndev
 
@@ -157,7 +204,7 @@ def ensemble(
         else:
             sharding = NamedSharding(mesh, PartitionSpec(axis_name))
             placed.append(jax.tree_util.tree_map(lambda x: jax.device_put(pad(x), sharding), arg))
-    out = _compiled(fn, in_axes, mesh, axis_name)(*placed)
+    out = _compiled(fn, in_axes, mesh, axis_name, chunk)(*placed)
     if padded == size:
         return out
     return jax.tree_util.tree_map(lambda x: x[:size], out)

@@ -45,6 +45,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
+from .lazy import unless_all_skip
 from .linalg import damped_least_squares, solve
 
 __all__ = ["AbstractDampedNewton", "RegularisedNewton", "LevenbergMarquardt", "default_tolerances"]
@@ -215,12 +216,10 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
 
         if self.reuse_jacobian > 0:
             # The residual at the iterate is already in the state; evaluate `aux` alongside.
-            def reused():
-                _, aux = residual(flat_y)
-                return state.jac, state.f, aux
-
+            # Lazy under vmap: an ensemble pays for the Jacobian only when a member needs it.
+            _, aux = residual(flat_y)
             refresh = state.refresh
-            jac, f, aux = jax.lax.cond(refresh, fresh, reused)
+            jac, f, aux = unless_all_skip(refresh, fresh, (state.jac, state.f, aux))
         else:
             refresh = jnp.array(True)
             jac, f, aux = fresh()
@@ -263,8 +262,8 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         a_used = jnp.where(ok, a, best_a)
         stalls = jnp.where(ok | ~refresh, 0, state.stalls + 1)
         a_used = jnp.where(ok | refresh | (best_phi < phi0), a_used, 0)
-        f_used = jax.lax.cond(
-            ok, lambda: fa, lambda: jnp.where(a_used == 0, f, trial(a_used)[0])
+        f_used = unless_all_skip(
+            ~ok & (a_used != 0), lambda: trial(a_used)[0], jnp.where(ok, fa, f)
         )
         # A finite residual with a non-finite direction is a broken-down linear solve
         # (`singular`); a non-finite residual, or one that turns non-finite all along the

@@ -26,6 +26,7 @@ from .formulation import (
     stage_values,
 )
 from .interpolation import NetworkInterpolation
+from .lazy import unless_all_skip
 from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
 from .oga import OGA, OGA1d, OGAReference
 from .quadrature import AbstractQuadrature, GaussLegendre
@@ -313,7 +314,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         targets, modulated = self.formulation.fit_targets(labels, ctx.q0)
         previous, fresh = state.theta, state.fresh
         # The seed is a starting point, not part of the solution: no derivative flows through
-        # it (and none may, through the while loop of `_unless_all_skip`).
+        # it (and none may, through the while loop of `diffrax_vi.lazy.unless_all_skip`).
         targets, previous = jax.lax.stop_gradient((targets, previous))
         problem = fit_problem(targets, modulated, previous, fresh)
 
@@ -328,7 +329,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             if tolerance is None:
                 tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
             reused = ~fresh & (misfit <= tolerance)
-            theta = _unless_all_skip(~reused, fresh_fit, refit)
+            theta = unless_all_skip(~reused, fresh_fit, refit)
         else:
             reused, theta = jnp.array(False), fresh_fit()
         x = self.formulation.unknowns(theta, labels[-1], p_end)
@@ -562,20 +563,6 @@ def _interpolation_factory(
     return functools.partial(
         NetworkInterpolation, basis=basis, formulation=formulation, nodes=nodes
     )
-
-
-def _unless_all_skip(need: Array, expensive, cheap: PyTree) -> PyTree:
-    """`expensive()` if `need`, else `cheap`: a conditional that stays lazy under `vmap`.
-
-    `lax.cond` with a batched predicate becomes a `select` that evaluates both branches for
-    every member; a while loop of at most one iteration runs its body only while some member
-    still needs it, so an ensemble whose members all refit skips the OGA entirely.
-    """
-
-    def body(carry):
-        return jnp.array(False), expensive()
-
-    return jax.lax.while_loop(lambda carry: carry[0], body, (need, cheap))[1]
 
 
 def _residual_scale(ctx: StepContext) -> Array:

@@ -33,10 +33,13 @@ def initial_conditions(n):
     return q, jnp.zeros_like(q)
 
 
-def test_ensemble_matches_single_solves():
+@pytest.mark.parametrize("batch_size", ["auto", None, 1, 2])
+def test_ensemble_matches_single_solves(batch_size):
+    """Every way of sharing the device (full vmap, a compiled loop over members or over
+    chunks of 2, which leaves a remainder of 1) gives each member its single solve."""
     y0 = initial_conditions(3)
     k = jnp.array([0.5, 1.0, 2.0])
-    (q, p), result = dvi.ensemble(solve_one, y0, k)
+    (q, p), result = dvi.ensemble(solve_one, y0, k, batch_size=batch_size)
     assert q.shape == (3, 1, 1) and p.shape == (3, 1, 1)
     assert np.all(np.asarray(result))
     for i in range(3):
@@ -63,6 +66,18 @@ def test_bad_input_is_refused():
         dvi.ensemble(solve_one, y0, jnp.ones(3), mesh="cpu")
     with pytest.raises(TypeError, match="callable"):
         dvi.ensemble(3, y0)
+    for bad in (0, -2, 1.5, True, "all"):
+        with pytest.raises(ValueError, match="batch_size"):
+            dvi.ensemble(solve_one, y0, jnp.ones(3), batch_size=bad)
+
+
+def test_auto_batch_size_is_sequential_on_cpu():
+    from diffrax_vi.ensemble import _resolve_batch_size
+
+    assert jax.default_backend() == "cpu"
+    assert _resolve_batch_size("auto", None) == 1
+    assert _resolve_batch_size(None, None) is None
+    assert _resolve_batch_size(4, None) == 4
 
 
 SHARDED = textwrap.dedent(
@@ -90,6 +105,13 @@ SHARDED = textwrap.dedent(
     print("max difference sharded - unsharded:", dq, dp)
     # vmap over 2 members per device vs 16 on one: same code, rounding may differ in the last bit
     assert dq <= 1e-13 and dp <= 1e-13
+    # each device's slice vmapped at once, or solved member by member
+    for batch_size in (None, 1):
+        (qb, _), rb = dvi.ensemble(
+            solve_one, y0, k, in_axes=(0, None), mesh=mesh, batch_size=batch_size
+        )
+        assert np.all(np.asarray(rb))
+        assert float(np.max(np.abs(np.asarray(qb) - np.asarray(q1)))) <= 1e-13
     """
 )
 

@@ -333,7 +333,7 @@ def test_fast_configuration_in_an_ensemble_matches_single_solves():
         )
 
     q0s = jnp.array([[0.3], [0.7], [1.1]])
-    batch = dvi.ensemble(one, q0s)
+    batch = dvi.ensemble(one, q0s, batch_size=None)  # vmap: the lockstep path
     for i in range(3):
         single = jax.jit(one)(q0s[i])
         np.testing.assert_allclose(batch.ys[0][i], single.ys[0], rtol=0, atol=1e-13)
