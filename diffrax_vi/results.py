@@ -181,6 +181,6 @@ def describe_failure(sol: diffrax.Solution) -> str | None:
     t, h = float(report.t), float(report.h)
     return (
         f"{kind}: step [{t:.6g}, {t + h:.6g}] (h = {h:.3g}) stopped at residual "
-        f"{float(report.residual):.3e} (tolerance {float(report.tolerance):.1e}) after "
+        f"{float(report.residual):.3e} (tolerance {float(report.tolerance):.3e}) after "
         f"{int(report.iterations)} iterations. {message}"
     )

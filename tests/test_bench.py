@@ -30,6 +30,7 @@ from diffrax_vi.bench import (
     work_precision,
 )
 from diffrax_vi.bench.__main__ import main as cli_main
+from diffrax_vi.bench.stability import full_grid
 from diffrax_vi.nonlinear import LevenbergMarquardt
 
 
@@ -134,6 +135,9 @@ def test_quick_grid_is_the_reference_grid():
     assert reference.build().root_finder.convergence == "reference"
     strict = dataclasses.replace(reference, acceptance="strict")
     assert reference.solver_key() == strict.solver_key()  # one compilation serves both
+    # λ is traced too: the full grid's five RegularisedNewton shifts share one compilation
+    full = full_grid(problems=("harmonic_oscillator",))
+    assert len(full) == 11_664 and len({c.solver_key() for c in full}) == 972
     with pytest.raises(ValueError, match="unknown activation"):
         StabilityCase("pendulum", 0.1, "float64", 8, 8, "swish", "LevenbergMarquardt")
     with pytest.raises(ValueError, match="acceptance"):
@@ -187,7 +191,14 @@ def test_stability_sweep_smoke(tmp_path):
                          "LevenbergMarquardt")
     path = str(tmp_path / "stability.csv")
     lax = dataclasses.replace(base, dt=10.0, acceptance="reference")
-    rows = stability_sweep([dataclasses.replace(base, dt=10.0), base, lax], csv_path=path)
+    # λ is a traced input of the same compilation: an overdamped LM (μ = 1e6‖F‖) crawls
+    crawl = dataclasses.replace(base, lam=1e6)
+    rows = stability_sweep([dataclasses.replace(base, dt=10.0), base, lax, crawl],
+                           csv_path=path)
+    (crawl_row,) = [r for r in rows if r["lam"] == 1e6]
+    rows = [r for r in rows if r["lam"] != 1e6]
+    (base_row,) = [r for r in rows if r["dt"] == 0.1]
+    assert crawl_row["iterations"] > 2 * base_row["iterations"]  # measured 23 against 10
     # the reference's accounting returns the stalled dt = 10 solve as converged (same
     # compilation, the test is a traced flag)
     (lax_row,) = [r for r in rows if r["acceptance"] == "reference"]
@@ -199,7 +210,8 @@ def test_stability_sweep_smoke(tmp_path):
     assert ok["ref_err"] < 1e-10 and ok["ham_drift"] < 1e-10 and ok["steps_done"] == 10
     assert by[10.0]["status"] in STATUSES and by[10.0]["status"] != "ok"
     assert by[10.0]["steps_done"] < 10 and by[10.0].get("ref_err") is None
-    assert [r["status"] for r in read_rows(path) if r["acceptance"] == "strict"] == [
+    assert [r["status"] for r in read_rows(path)
+            if r["acceptance"] == "strict" and float(r["lam"]) != 1e6] == [
         r["status"] for r in rows]
     rates = convergence_rates(rows)["float64"]
     assert (rates["cases"], rates["converged"], rates["rate"]) == (2, 1, 0.5)
@@ -252,3 +264,18 @@ def test_harness_refuses_bad_input():
         long_time_energy(problem, [(tsit5, -1e-6)])
     with pytest.raises(ValueError, match="samples"):
         long_time_energy(problem, [(tsit5, 1e-6)], samples=1)
+
+
+def test_energy_problem_selection_is_shared_by_serial_and_parallel_runs():
+    """Quick energy runs skip problems whose setting says so (the Toda lattice); --full and
+    an explicit --problems list run them; the parallel runner asks the same function."""
+    from diffrax_vi.bench.__main__ import _energy_problems, _problem_names
+    from diffrax_vi.bench.suites import SETTINGS
+
+    quick = _energy_problems(None, False, SETTINGS)
+    assert "toda_lattice" not in quick and "harmonic_oscillator" in quick
+    assert _energy_problems(None, True, SETTINGS) == list(SETTINGS)
+    assert _energy_problems(["toda_lattice"], False, SETTINGS) == ["toda_lattice"]
+    assert _problem_names("energy", None) == quick
+    assert _problem_names("energy", None, full=True) == list(SETTINGS)
+    assert _problem_names("energy", ["kepler", "toda_lattice"]) == ["toda_lattice", "kepler"]

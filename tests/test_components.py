@@ -790,3 +790,24 @@ def test_structured_jacobian_needs_the_callers_matrix():
     assert float(jnp.max(jnp.abs(sol.value - _XSTAR))) <= 1e-13
     with pytest.raises(ValueError, match="jacobian must be"):
         LevenbergMarquardt(jacobian="blocks")
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
+def test_damped_least_squares_solves_the_regularised_problem(dtype):
+    """`d = argmin ‖J d − r‖² + μ‖d‖²`, also for a singular `J`, against the normal equations
+    solved in float64, and in the dtype of the right-hand side."""
+    from diffrax_vi.linalg import damped_least_squares
+
+    rng = np.random.default_rng(3)
+    jac = rng.standard_normal((12, 12))
+    jac[:, -1] = jac[:, 0]  # rank-deficient, as the network steps are
+    rhs = rng.standard_normal(12)
+    mu = 1e-2
+    expected = np.linalg.solve(jac.T @ jac + mu * np.eye(12), jac.T @ rhs)
+    d = damped_least_squares(jnp.asarray(jac, dtype), jnp.asarray(rhs, dtype),
+                             jnp.sqrt(jnp.asarray(mu, dtype)))
+    assert d.dtype == dtype
+    eps = float(jnp.finfo(dtype).eps)
+    tol = 1e-10 if dtype == jnp.float64 else 300 * eps
+    np.testing.assert_allclose(np.asarray(d, np.float64), expected, rtol=0,
+                               atol=tol * np.max(np.abs(expected)))

@@ -80,9 +80,11 @@ def run_work_precision(args) -> None:
     print(ratio_markdown(ratio_table(rows)))
 
 
-def _energy_problems(args, settings) -> list[str]:
-    if args.problems or args.full:
-        return _problems(args, settings)
+def _energy_problems(chosen, full: bool, settings) -> list[str]:
+    """The problems of an energy run: the chosen ones, all with `--full`, else those whose
+    setting runs in the quick report (`quick_energy`)."""
+    if chosen or full:
+        return list(chosen or settings)
     return [n for n, s in settings.items() if s.quick_energy]
 
 
@@ -90,7 +92,8 @@ def run_energy(args) -> None:
     from .harness import Adaptive, long_time_energy
     from .suites import SETTINGS, networkvi_entries, peer_entries
 
-    names = _energy_problems(args, SETTINGS)
+    _problems(args, SETTINGS)  # refuses unknown names
+    names = _energy_problems(args.problems, args.full, SETTINGS)
     path = _fresh(os.path.join(args.out, CSV["energy"]))
     rtols = (1e-8, 1e-10, 1e-12) if args.quick else (1e-6, 1e-8, 1e-10, 1e-12, 1e-14)
     peers = [e for e in peer_entries(False) if isinstance(e, Adaptive)
@@ -196,9 +199,10 @@ def _problem_names(study: str, chosen, full: bool = False) -> list[str]:
     else:
         from .suites import SETTINGS
 
+        if study == "energy":
+            names = _energy_problems(None, full, SETTINGS)
+            return [n for n in SETTINGS if n in chosen] if chosen else names
         names = list(SETTINGS)
-        if study == "energy" and not chosen and not full:
-            names = [n for n in names if SETTINGS[n].quick_energy]
     return [n for n in names if not chosen or n in chosen]
 
 

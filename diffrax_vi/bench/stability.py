@@ -9,11 +9,12 @@ precision and records, as the reference's benchmark does:
   smallest `dt`),
 - `ham_drift`: `max_n |H_n − H_0| / |H_0|` over the step ends, evaluated in float64,
 - `iterations`: nonlinear iterations of the final step, and `total_s`: wall time of the run
-  including compilation (cases that differ only in `dt` share one compilation).
+  including compilation (cases that differ only in `dt`, λ or the convergence test share one
+  compilation).
 
 The reference's "DogLeg" and "Newton/Backtracking" solvers map to our `LevenbergMarquardt`
-(a trust-region-like damped Gauss–Newton) and `RegularisedNewton` (the reference's `J + λI`
-Newton with Armijo backtracking), both with `λ = 16·sqrt(eps(T))` by default.
+(a trust-region-like damped Gauss–Newton, with its own damping scale) and `RegularisedNewton`
+(the reference's `J + λI` Newton with Armijo backtracking, `λ = 16·sqrt(eps(T))` by default).
 """
 
 from __future__ import annotations
@@ -130,18 +131,20 @@ class StabilityCase:
         return float(16 * np.sqrt(np.finfo(np.dtype(self.dtype)).eps))
 
     def solver_key(self) -> tuple:
-        """Cases with equal keys share one compilation (they differ only in `dt`)."""
+        """Cases with equal keys share one compilation (they differ only in `dt`, λ or the
+        convergence test, which enter the compiled solve as traced values)."""
         return (self.problem, self.dtype, self.nodes, self.width, self.activation,
-                self.solver, self.lam_value, self.initial_guess, self.steps,
-                self.max_iterations)
+                self.solver, self.initial_guess, self.steps, self.max_iterations)
 
-    def build(self, reference=None) -> NetworkVI:
+    def build(self, reference=None, lam=None) -> NetworkVI:
         """The configured `NetworkVI`. `reference` (a possibly traced boolean) overrides
-        `acceptance`, so that both convergence tests share one compiled program."""
+        `acceptance`, and `lam` (a possibly traced scalar) `lam_value`, so that cases that
+        differ only in them share one compiled program."""
+        lam = self.lam_value if lam is None else lam
         if reference is None:
-            root_finder = SOLVERS[self.solver](lam=self.lam_value, convergence=self.acceptance)
+            root_finder = SOLVERS[self.solver](lam=lam, convergence=self.acceptance)
         else:
-            root_finder = _SWITCHED[self.solver](lam=self.lam_value, reference=reference)
+            root_finder = _SWITCHED[self.solver](lam=lam, reference=reference)
         return NetworkVI(
             ShallowNetBasis(ACTIVATIONS[self.activation], self.width),
             GaussLegendre(self.nodes),
@@ -212,8 +215,8 @@ _SWITCHED = {"LevenbergMarquardt": _SwitchedLevenbergMarquardt,
 
 
 class _Compiled:
-    """A compiled 10-step solve for one `solver_key`; `dt` enters through `StepTo`'s times and
-    the convergence test as a traced flag."""
+    """A compiled 10-step solve for one `solver_key`; `dt` enters through `StepTo`'s times,
+    the convergence test as a traced flag and λ as a traced scalar."""
 
     def __init__(self, case: StabilityCase):
         self.problem = PROBLEMS[case.problem](dtype=np.dtype(case.dtype))
@@ -221,8 +224,8 @@ class _Compiled:
         steps = case.steps
 
         @eqx.filter_jit
-        def solve(y0, ts, reference):
-            solver = case.build(reference=reference)
+        def solve(y0, ts, reference, lam):
+            solver = case.build(reference=reference, lam=lam)
             return diffrax.diffeqsolve(
                 term, solver, ts[0], ts[-1], None, y0, args=args,
                 saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
@@ -254,7 +257,8 @@ def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
         ts64 = problem.t0 + case.dt * np.arange(case.steps + 1, dtype=np.float64)
         reference = jnp.asarray(case.acceptance == "reference")
         sol = jax.block_until_ready(
-            compiled.solve(problem.y0, jnp.asarray(ts64, dtype), reference))
+            compiled.solve(problem.y0, jnp.asarray(ts64, dtype), reference,
+                           jnp.asarray(case.lam_value, jnp.float64)))
         row["total_s"] = time.perf_counter() - start
         row["status"] = classify(sol, iteration_cap=case.max_iterations)
         state = sol.solver_state
