@@ -279,3 +279,23 @@ def test_energy_problem_selection_is_shared_by_serial_and_parallel_runs():
     assert _problem_names("energy", None) == quick
     assert _problem_names("energy", None, full=True) == list(SETTINGS)
     assert _problem_names("energy", ["kepler", "toda_lattice"]) == ["toda_lattice", "kepler"]
+
+
+def test_full_grid_sample_draws_whole_compilation_groups():
+    """benchmarks/full_grid_sample.py: per solver, seeded random groups of cases that share a
+    compilation (LevenbergMarquardt: 4 dt; RegularisedNewton: 4 dt x 5 λ)."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "full_grid_sample.py")
+    spec = importlib.util.spec_from_file_location("full_grid_sample", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    strata = module.sample_groups("pendulum", 3, seed=1)
+    assert sorted(strata) == ["LevenbergMarquardt", "RegularisedNewton"]
+    for solver, (groups, total) in strata.items():
+        assert total == 486 and len(groups) == 3
+        for cases in groups:
+            assert len({c.solver_key() for c in cases}) == 1
+            assert len(cases) == (4 if solver == "LevenbergMarquardt" else 20)
+    again = module.sample_groups("pendulum", 3, seed=1)
+    assert [g[0][0] for g in again.values()] == [g[0][0] for g in strata.values()]
