@@ -196,22 +196,20 @@ def full_grid(
     ]
 
 
-class _SwitchedLevenbergMarquardt(LevenbergMarquardt):
-    reference: Any = False
+def _switched(base: type) -> type:
+    """`base` with the convergence test chosen by a (possibly traced) field `reference`."""
 
-    def _reference_mode(self):
-        return self.reference
+    class Switched(base):
+        reference: Any = False
+
+        def _reference_mode(self):
+            return self.reference
+
+    Switched.__name__ = Switched.__qualname__ = f"_Switched{base.__name__}"
+    return Switched
 
 
-class _SwitchedRegularisedNewton(RegularisedNewton):
-    reference: Any = False
-
-    def _reference_mode(self):
-        return self.reference
-
-
-_SWITCHED = {"LevenbergMarquardt": _SwitchedLevenbergMarquardt,
-             "RegularisedNewton": _SwitchedRegularisedNewton}
+_SWITCHED = {name: _switched(cls) for name, cls in SOLVERS.items()}
 
 
 class _Compiled:
