@@ -131,8 +131,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       reference does): the refitted networks converge to slightly worse-conditioned roots,
       so results move at the level of the residual floor (oscillator, 10 steps of 0.1: max
       error 1.2e-11 against 4.5e-13; over 300 steps, where truncation dominates, 4.4e-10
-      either way). `True` makes the oscillator step 6x faster and the double pendulum at
-      h = 0.1 converge where the OGA seed stalls (see `benchmarks/speed.py`).
+      either way). `True` makes the oscillator step 6x faster and carries the double pendulum
+      at h = 0.1 past the step where the OGA seed stalls (step 26; it fails itself at step
+      34: see `benchmarks/speed.py`).
     - `refit_tolerance`: acceptance bound on the relative misfit of the refit (weighted `L²`
       on the step, over `1 + max|q|`). Default `None`: `sqrt(eps)` of the working dtype.
     - `root_finder`: the per-step root finder. Default `LevenbergMarquardt()`, whose
