@@ -136,6 +136,12 @@ class AbstractFormulation(eqx.Module):
         and basis have no structured form (the root finder then differentiates)."""
         return None
 
+    def has_closed_form_jacobian(self, basis: AbstractBasis) -> bool:
+        """Whether `jacobian` is formed from closed-form derivatives of `basis` (then it is
+        much cheaper than differentiating `residual`, and the default root finders use it)."""
+        del basis
+        return False
+
 
 class FreeEndpoints(AbstractFormulation):
     """Free-endpoint formulation: unknowns `(θ, p_{n+1})`, continuity as an equation."""
@@ -166,6 +172,9 @@ class FreeEndpoints(AbstractFormulation):
         theta, p1 = x
         return ctx.basis.evaluate(theta, jnp.ones((), q_dtype(ctx))), p1
 
+    def has_closed_form_jacobian(self, basis) -> bool:
+        return bool(getattr(basis, "coordinatewise", False) and getattr(basis, "has_jet", False))
+
     def jacobian(self, x, ctx) -> Array | None:
         """The Jacobian of `residual` by blocks, for a `coordinatewise` basis (else `None`), as
         a dense matrix in the order of `ravel_pytree` (unknowns `(θ, p_{n+1})`, equations
@@ -191,20 +200,22 @@ class FreeEndpoints(AbstractFormulation):
         nodes = ctx.nodes.astype(dtype)
         h = ctx.h
         b = ctx.weights.astype(dtype)
-
-        def g(theta_d, tau):  # one coordinate of the curve
-            return basis.evaluate(theta_d[:, None], tau)[0]
-
-        def g_and_slope(theta_d, tau):
-            return jax.jvp(lambda s: g(theta_d, s), (tau,), (jnp.ones_like(tau),))
-
-        # Stage values (R, D) and their gradients A, B (R, D, P) in θ_d.
-        def stages_d(theta_d):
-            return jax.vmap(lambda tau: g_and_slope(theta_d, tau))(nodes)
-
-        (q, dq), (A, B) = jax.vmap(
-            lambda th: (stages_d(th), jax.jacfwd(stages_d)(th)), in_axes=1, out_axes=1
-        )(theta)
+        zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
+        n_nodes = nodes.shape[0]
+        # Stage values (R, D), their gradients A, B (R, D, P) in θ_d, and those of q_d(0),
+        # q_d(1) (P, D): in closed form where the basis has one, else by autodiff.
+        jet = None
+        if self.has_closed_form_jacobian(basis):
+            jet = basis.jet(theta, jnp.concatenate([nodes, jnp.stack([zero, one])]))
+        if jet is not None:
+            (q_all, dq_all), (a_all, b_all) = jet.values(), jet.gradients()
+            q, dq, A, B = q_all[:n_nodes], dq_all[:n_nodes], a_all[:n_nodes], b_all[:n_nodes]
+            grad_start, grad_end = a_all[n_nodes].T, a_all[n_nodes + 1].T
+        else:
+            (q, dq), (A, B) = _coordinate_stage_jacobians(basis, theta, nodes)
+            g = _coordinate_curve(basis)
+            grad_end = jax.vmap(jax.grad(g), in_axes=(1, None), out_axes=1)(theta, one)
+            grad_start = jax.vmap(jax.grad(g), in_axes=(1, None), out_axes=1)(theta, zero)
         ts = ctx.t + ctx.nodes * h
         v = dq / h
 
@@ -215,14 +226,14 @@ class FreeEndpoints(AbstractFormulation):
             lambda t, qj, vj: (mf(t, qj, vj), jax.jacfwd(mf, argnums=(1, 2))(t, qj, vj))
         )(ts, q, v)
         p, f = jax.lax.stop_gradient((p, f))
-
-        def psi(theta_d, p_d, f_d, p0_d, p1_d):
-            zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-            qd, dqd = stages_d(theta_d)
-            return (p1_d * g(theta_d, one) - p0_d * g(theta_d, zero)
-                    - jnp.sum(b * (h * f_d * qd + p_d * dqd)))
-
-        hess = jax.vmap(jax.hessian(psi), in_axes=(1, 1, 1, 0, 0))(theta, p, f, ctx.p0, p1)
+        # ∇²ψ_d: ψ_d is a weighted sum of values and slopes of q_d at the nodes and ends.
+        if jet is not None:
+            ends = jnp.zeros((2,) + p.shape[1:], dtype)
+            u = jnp.concatenate([-(h * b)[:, None] * f, -ctx.p0[None], p1[None]])
+            w = jnp.concatenate([-b[:, None] * p, ends])
+            hess = jet.weighted_hessian(u, w)
+        else:
+            hess = _coordinate_psi_hessian(basis, theta, nodes, h, b, p, f, ctx.p0, p1)
         n_p, dim = theta.shape
         eye = jnp.eye(dim, dtype=dtype)
         # coupling[p, d, q, e] = ∂(Σ_j b_j (h f_jd A_jdp + ϑ_jd B_jdp))/∂θ_qe through (ϑ, f)
@@ -233,9 +244,6 @@ class FreeEndpoints(AbstractFormulation):
             + jnp.einsum("j,jdp,jde,jeq->pdqe", b / h, B, pv, B)
         )
         block = jnp.einsum("dpq,de->pdqe", hess, eye) - coupling
-        one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
-        grad_end = jax.vmap(jax.grad(g), in_axes=(1, None), out_axes=1)(theta, one)  # (P, D)
-        grad_start = jax.vmap(jax.grad(g), in_axes=(1, None), out_axes=1)(theta, zero)
         n = n_p * dim
         top = jnp.concatenate(
             [block.reshape(n, n), jnp.einsum("pd,de->pde", grad_end, eye).reshape(n, dim)],
@@ -293,3 +301,49 @@ class InterpolatingEndpoints(AbstractFormulation):
 
 def q_dtype(ctx: StepContext):
     return ctx.q0.dtype
+
+
+def _coordinate_curve(basis: AbstractBasis):
+    """One coordinate of a `coordinatewise` basis: `(θ_d, τ) ↦ q_d(τ)`."""
+
+    def g(theta_d, tau):
+        return basis.evaluate(theta_d[:, None], tau)[0]
+
+    return g
+
+
+def _coordinate_stages(basis: AbstractBasis, nodes: Array):
+    """`θ_d ↦ (q_d(c_j), q_d'(c_j))` at every node, each `(R,)`."""
+    g = _coordinate_curve(basis)
+
+    def stages_d(theta_d):
+        def one(tau):
+            return jax.jvp(lambda s: g(theta_d, s), (tau,), (jnp.ones_like(tau),))
+
+        return jax.vmap(one)(nodes)
+
+    return stages_d
+
+
+def _coordinate_stage_jacobians(basis: AbstractBasis, theta: Array, nodes: Array):
+    """Stage values `(R, D)` and their gradients `(R, D, P)` in `θ_d`, by autodiff."""
+    stages_d = _coordinate_stages(basis, nodes)
+    return jax.vmap(
+        lambda th: (stages_d(th), jax.jacfwd(stages_d)(th)), in_axes=1, out_axes=1
+    )(theta)
+
+
+def _coordinate_psi_hessian(basis, theta, nodes, h, b, p, f, p0, p1) -> Array:
+    """`∇²ψ_d` by autodiff, `(D, P, P)`, with
+    `ψ_d(θ_d) = p_{n+1,d} q_d(1) − p_{n,d} q_d(0) − Σ_j b_j (h f_jd Q_jd + ϑ_jd V_jd)`."""
+    g = _coordinate_curve(basis)
+    stages_d = _coordinate_stages(basis, nodes)
+    zero, one = jnp.zeros((), nodes.dtype), jnp.ones((), nodes.dtype)
+
+    def psi(theta_d, p_d, f_d, p0_d, p1_d):
+        qd, dqd = stages_d(theta_d)
+        return p1_d * g(theta_d, one) - p0_d * g(theta_d, zero) - jnp.sum(
+            b * (h * f_d * qd + p_d * dqd)
+        )
+
+    return jax.vmap(jax.hessian(psi), in_axes=(1, 1, 1, 0, 0))(theta, p, f, p0, p1)

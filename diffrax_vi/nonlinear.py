@@ -12,9 +12,10 @@ handle this:
 
 Both take an Armijo backtracking line search on `½‖F‖²`, reuse the last Jacobian while it
 keeps cutting the residual (`reuse_jacobian`), form the Jacobian densely (by
-default with `jax.jacfwd`; `jacobian="rev"` uses `jax.jacrev`, which evaluates the Jacobian
-alone 1.5–1.7x faster on the oscillator and double-pendulum fixtures, but changes the rounding
-and with it the iteration path; `benchmarks/speed.py` compares whole solves), and are
+default with `jax.jacfwd`; `jacobian="rev"` uses `jax.jacrev`; `"auto"` and `"structured"` take
+the matrix the caller assembles, which `NetworkVI` does in closed form for shallow networks;
+each changes the rounding and with it the iteration path; `benchmarks/speed.py` compares whole
+solves), and are
 `optimistix.AbstractRootFinder`s, so `optimistix.root_find` supplies implicit differentiation
 of a converged step. Any optimistix root finder (`optx.Newton`, `optx.Dogleg`, ...) may be used
 in their place.
@@ -131,9 +132,9 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
     convergence: str = eqx.field(static=True, default="strict")
 
     def __check_init__(self):
-        if self.jacobian not in ("rev", "fwd", "structured"):
+        if self.jacobian not in ("auto", "rev", "fwd", "structured"):
             raise ValueError(
-                f"jacobian must be 'fwd', 'rev' or 'structured', got {self.jacobian!r}"
+                f"jacobian must be 'auto', 'fwd', 'rev' or 'structured', got {self.jacobian!r}"
             )
         if self.convergence not in ("strict", "reference"):
             raise ValueError(
@@ -195,18 +196,18 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             f, aux = residual(v)
             return f, (f, aux)
 
-        if self.jacobian == "structured":
-            given = options.get("jacobian")
-            if given is None:
-                raise ValueError(
-                    "jacobian='structured' needs the caller to pass the Jacobian as "
-                    "options['jacobian'] (a function of the unknowns); NetworkVI does so for a "
-                    "ShallowNetBasis with free endpoints"
-                )
+        given = options.get("jacobian")
+        if self.jacobian == "structured" and given is None:
+            raise ValueError(
+                "jacobian='structured' needs the caller to pass the Jacobian as "
+                "options['jacobian'] (a function of the unknowns and args); NetworkVI does so "
+                "for a ShallowNetBasis with free endpoints"
+            )
+        if given is not None and self.jacobian in ("auto", "structured"):
 
             def fresh():
                 f, aux = residual(flat_y)
-                return given(y).astype(dtype), f, aux
+                return given(y, args).astype(dtype), f, aux
         else:
             jacobian = jax.jacrev if self.jacobian == "rev" else jax.jacfwd
 
@@ -361,10 +362,15 @@ _COMMON_ARGS = """
     - `settle`: iterations without the residual halving before settled outputs end the
       solve (default 3; fewer iterations per step, results that move at the floor level).
     - `patience`: iterations without the residual halving before giving up.
-    - `jacobian`: `"fwd"` (default, `jax.jacfwd`), `"rev"` (`jax.jacrev`) or `"structured"`
-      (the caller's `options["jacobian"]`, a function of the unknowns returning the dense
-      matrix: `NetworkVI` assembles it by coordinate blocks for a `ShallowNetBasis` with free
-      endpoints, `FreeEndpoints.jacobian`). All give the same matrix up to rounding.
+    - `jacobian`: `"fwd"` (default, `jax.jacfwd`), `"rev"` (`jax.jacrev`), `"structured"`
+      (the caller's `options["jacobian"]`, required: a function of the unknowns and `args`
+      returning the dense matrix) or `"auto"` (the caller's matrix where it passes one, else
+      `jax.jacfwd`). `NetworkVI` assembles the matrix by coordinate blocks
+      (`FreeEndpoints.jacobian`); under `"auto"` it passes it only where the blocks have a
+      closed form (`ShallowNetBasis` without mirrored pairs, free endpoints), which is 8–13×
+      faster than `jax.jacfwd` on the double-pendulum, Kepler and Toda fixtures of
+      `benchmarks/jacobian.py`. All give the same matrix up to rounding; the iteration path,
+      and with it the result at the level of the residual floor, changes with it.
     - `reuse_jacobian`: keep the Jacobian of the previous iteration while its full step is
       accepted and cuts the residual at least four-fold, for at most this many iterations in
       a row (default 0: a fresh Jacobian on every iteration); a fresh one is evaluated

@@ -413,7 +413,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             options=dict(
                 scale=_residual_scale(ctx),
                 outputs=lambda x: self.formulation.end_state(x, ctx),
-                jacobian=lambda x: self.formulation.jacobian(x, ctx),
+                jacobian=_jacobian_option(self.root_finder, self.formulation, ctx),
             ),
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,
@@ -525,7 +525,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             companion,
             options=dict(
                 scale=_residual_scale(ctx), outputs=lambda x: form.end_state(x, companion),
-                jacobian=lambda x: form.jacobian(x, companion),
+                jacobian=_jacobian_option(self.root_finder, form, companion),
             ),
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,
@@ -564,6 +564,20 @@ def _interpolation_factory(
     return functools.partial(
         NetworkInterpolation, basis=basis, formulation=formulation, nodes=nodes
     )
+
+
+def _jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepContext):
+    """The Jacobian the solver hands its root finder (`options["jacobian"]`, a function of the
+    unknowns and the step context): the block assembly of `formulation` where the root
+    finder asks for it (`jacobian="structured"`), or leaves the choice to us (`"auto"`) and
+    the blocks have a closed form; else `None`. The context comes in as the root find's
+    `args`, not by closure, so that implicit differentiation of the step sees it."""
+    mode = getattr(root_finder, "jacobian", None)
+    if mode == "structured" or (
+        mode == "auto" and formulation.has_closed_form_jacobian(ctx.basis)
+    ):
+        return formulation.jacobian
+    return None
 
 
 def _residual_scale(ctx: StepContext) -> Array:

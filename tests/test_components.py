@@ -783,7 +783,7 @@ def test_structured_jacobian_keeps_the_working_dtype(dtype):
 def test_structured_jacobian_needs_the_callers_matrix():
     with pytest.raises(ValueError, match="options\\['jacobian'\\]"):
         _find(well_posed, LevenbergMarquardt(jacobian="structured"), jnp.zeros(10, F64))
-    given = lambda y: jax.jacfwd(lambda v: well_posed(v, None))(y)
+    given = lambda y, args: jax.jacfwd(lambda v: well_posed(v, args))(y)
     sol = _find(well_posed, LevenbergMarquardt(jacobian="structured"), jnp.zeros(10, F64),
                 options=dict(jacobian=given))
     assert sol.result == optx.RESULTS.successful
@@ -811,3 +811,78 @@ def test_damped_least_squares_solves_the_regularised_problem(dtype):
     tol = 1e-10 if dtype == jnp.float64 else 300 * eps
     np.testing.assert_allclose(np.asarray(d, np.float64), expected, rtol=0,
                                atol=tol * np.max(np.abs(expected)))
+
+
+# -- closed-form network derivatives (`ShallowNetBasis.jet`) ----------------------------------
+@pytest.mark.parametrize(
+    "activation", [dvi.tanh, dvi.gelu, dvi.sin, dvi.sigmoid, dvi.relu_k(3)],
+    ids=["tanh", "gelu", "sin", "sigmoid", "relu3"],
+)
+def test_network_jet_matches_autodiff(activation):
+    """Values, slopes, their parameter gradients and a weighted Hessian of the network at a
+    few points, against JAX differentiating `ShallowNetBasis.evaluate`."""
+    basis = dvi.ShallowNetBasis(activation, 4)
+    dim, taus = 3, jnp.array([0.0, 0.2, 0.7, 1.0], F64)
+    theta = jax.random.normal(jax.random.PRNGKey(3), (basis.num_params(), dim), F64)
+    u, v = jax.random.normal(jax.random.PRNGKey(4), (2, taus.size, dim), F64)
+    jet = basis.jet(theta, taus)
+
+    def curve(th_d, tau):
+        return basis.evaluate(th_d[:, None], tau)[0]
+
+    def slope(th_d, tau):
+        return jax.grad(curve, argnums=1)(th_d, tau)
+
+    def psi(th_d, u_d, v_d):
+        return jnp.sum(u_d * jax.vmap(curve, (None, 0))(th_d, taus)
+                       + v_d * jax.vmap(slope, (None, 0))(th_d, taus))
+
+    per_point = jax.vmap(jax.vmap(curve, (1, None)), (None, 0))  # (K, D)
+    per_point_slope = jax.vmap(jax.vmap(slope, (1, None)), (None, 0))
+    q, dq = jet.values()
+    np.testing.assert_allclose(q, per_point(theta, taus), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(dq, per_point_slope(theta, taus), rtol=0, atol=1e-13)
+    grad_q, grad_dq = jet.gradients()
+    want_q = jax.vmap(jax.vmap(jax.grad(curve), (1, None)), (None, 0))(theta, taus)
+    want_dq = jax.vmap(jax.vmap(jax.grad(slope), (1, None)), (None, 0))(theta, taus)
+    np.testing.assert_allclose(grad_q, want_q, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(grad_dq, want_dq, rtol=0, atol=1e-13)
+    hess = jet.weighted_hessian(u, v)
+    want = jax.vmap(jax.hessian(psi), in_axes=(1, 1, 1))(theta, u, v)
+    assert hess.shape == (dim, basis.num_params(), basis.num_params())
+    np.testing.assert_allclose(hess, want, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(want))))
+
+
+def test_network_jet_applies_only_where_its_formulas_hold():
+    plain = dvi.ShallowNetBasis(dvi.tanh, 4)
+    mirrored = dvi.ShallowNetBasis(dvi.tanh, 4, symmetry=dvi.MirrorPairs())
+    assert plain.has_jet and not mirrored.has_jet
+    assert mirrored.jet(jnp.zeros((mirrored.num_params(), 1)), jnp.zeros(2)) is None
+    form = FreeEndpoints()
+    assert form.has_closed_form_jacobian(plain)
+    assert not form.has_closed_form_jacobian(mirrored)
+    assert not form.has_closed_form_jacobian(dvi.LagrangeBasis(4))
+    assert not InterpolatingEndpoints().has_closed_form_jacobian(plain)
+
+
+def test_auto_jacobian_hands_the_closed_form_to_the_root_finder():
+    """Under `jacobian="auto"` NetworkVI passes its block Jacobian exactly where
+    it has a closed form, and the root finder differentiates otherwise."""
+    from diffrax_vi.solver import _jacobian_option
+
+    problem = problems.double_pendulum(dtype=F64)
+    auto, fwd = LevenbergMarquardt(jacobian="auto"), LevenbergMarquardt()
+    assert fwd.jacobian == "fwd"  # the default
+    for basis, closed in [
+        (dvi.ShallowNetBasis(dvi.tanh, 4), True),
+        (dvi.ShallowNetBasis(dvi.tanh, 4, symmetry=dvi.MirrorPairs()), False),
+        (dvi.LagrangeBasis(4), False),
+    ]:
+        shallow = isinstance(basis, dvi.ShallowNetBasis)
+        seed = {} if shallow else dict(initial_guess=LeastSquaresFit())
+        solver = dvi.NetworkVI(basis, GaussLegendre(6), **seed)
+        ctx = solver._context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+        assert (_jacobian_option(auto, FreeEndpoints(), ctx) is not None) == closed
+        assert _jacobian_option(fwd, FreeEndpoints(), ctx) is None
+        structured = LevenbergMarquardt(jacobian="structured")
+        assert _jacobian_option(structured, FreeEndpoints(), ctx) is not None

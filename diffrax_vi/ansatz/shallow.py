@@ -7,6 +7,7 @@ from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
@@ -14,7 +15,7 @@ from ..activations import activation_name, check_activation
 from ..oga.symmetry import AbstractSymmetry, MirrorPairs, NoSymmetry, SharedMirrorPairs, mirror
 from .base import AbstractBasis
 
-__all__ = ["ShallowNetBasis"]
+__all__ = ["ShallowNetBasis", "NetworkJet"]
 
 
 def _network_min_nodes(width: int) -> int:
@@ -28,6 +29,78 @@ def _network_min_nodes(width: int) -> int:
 def _interleave(a: Array, b: Array) -> Array:
     """Rows `a_0, b_0, a_1, b_1, ...` (along axis 0)."""
     return jnp.stack([a, b], axis=1).reshape((-1,) + a.shape[1:])
+
+
+def _activation_derivatives(activation: Callable, z: Array) -> tuple[Array, Array, Array, Array]:
+    """`σ, σ', σ'', σ'''` of an elementwise activation at `z`, by nested forward mode."""
+    one = jnp.ones_like(z)
+
+    def d1(x):
+        return jax.jvp(activation, (x,), (one,))[1]
+
+    s0, s1 = jax.jvp(activation, (z,), (one,))
+    s2, s3 = jax.jvp(lambda x: jax.jvp(d1, (x,), (one,))[1], (z,), (one,))
+    return s0, s1, s2, s3
+
+
+class NetworkJet(eqx.Module):
+    """A network `q_d(τ) = Σ_i α_id σ(w_id τ + β_id)` and its derivatives at points `τ_k`, in
+    closed form: values and τ-slopes, their gradients in each coordinate's parameters
+    `θ_d = (α_d, w_d, β_d)`, and weighted sums of their Hessians, which are 3×3 blocks per
+    neuron (a neuron touches only its own three parameters).
+
+    This is what the Newton Jacobian of a step needs (`FreeEndpoints.jacobian`): a few
+    elementwise passes over `(points, neurons, coordinates)` instead of nested automatic
+    differentiation through the network.
+    """
+
+    alpha: Array  # (S, D)
+    w: Array  # (S, D)
+    beta: Array  # (S, D)
+    taus: Array  # (K,)
+    s: tuple[Array, Array, Array, Array]  # σ and its first three derivatives, each (K, S, D)
+
+    def values(self) -> tuple[Array, Array]:
+        """`q_d(τ_k)` and `q_d'(τ_k)`, each `(K, D)`."""
+        s0, s1 = self.s[0], self.s[1]
+        return jnp.sum(self.alpha * s0, axis=1), jnp.sum(self.alpha * self.w * s1, axis=1)
+
+    def gradients(self) -> tuple[Array, Array]:
+        """`∂q_d(τ_k)/∂θ_d` and `∂q_d'(τ_k)/∂θ_d`, each `(K, D, 3S)` in the order `(α, w, β)`."""
+        s0, s1, s2, _ = self.s
+        tau = self.taus[:, None, None]
+        a, w = self.alpha, self.w
+        value = (s0, a * tau * s1, a * s1)
+        slope = (w * s1, a * (s1 + w * tau * s2), a * w * s2)
+
+        def join(parts):
+            return jnp.concatenate([jnp.swapaxes(part, 1, 2) for part in parts], axis=2)
+
+        return join(value), join(slope)
+
+    def weighted_hessian(self, u: Array, v: Array) -> Array:
+        """`∇²_θd Σ_k (u_kd q_d(τ_k) + v_kd q_d'(τ_k))` for every coordinate `d`: `(D, 3S, 3S)`
+        (`u`, `v` of shape `(K, D)`)."""
+        _, s1, s2, s3 = self.s
+        tau = self.taus[:, None, None]
+        u, v = u[:, None, :], v[:, None, :]
+        a, w = self.alpha, self.w
+
+        def total(x):  # over the points: (S, D)
+            return jnp.sum(x, axis=0)
+
+        aw = total(u * tau * s1 + v * (s1 + w * tau * s2))
+        ab = total(u * s1 + v * w * s2)
+        ww = a * total(u * tau**2 * s2 + v * (2 * tau * s2 + w * tau**2 * s3))
+        wb = a * total(u * tau * s2 + v * (s2 + w * tau * s3))
+        bb = a * total(u * s2 + v * w * s3)
+        zero = jnp.zeros_like(aw)
+        blocks = jnp.stack(
+            [jnp.stack([zero, aw, ab]), jnp.stack([aw, ww, wb]), jnp.stack([ab, wb, bb])]
+        )  # (3, 3, S, D)
+        n_s, dim = a.shape
+        eye = jnp.eye(n_s, dtype=a.dtype)
+        return jnp.einsum("abid,ij->daibj", blocks, eye).reshape(dim, 3 * n_s, 3 * n_s)
 
 
 class ShallowNetBasis(AbstractBasis):
@@ -147,6 +220,21 @@ class ShallowNetBasis(AbstractBasis):
             return symbolic_shallow_evaluate(self)(theta, tau)
         alpha, w, beta = self.split(theta)
         return jnp.sum(alpha * self.activation(w * tau + beta), axis=0)
+
+    @property
+    def has_jet(self) -> bool:
+        """Whether `jet` applies: not with mirrored pairs (the parameters reach the neurons
+        through the mirror map) nor with sympy-compiled derivatives."""
+        return not self.mirrored and self.derivatives == "autodiff"
+
+    def jet(self, theta: Array, taus: Array) -> NetworkJet | None:
+        """The network's closed-form derivatives at the points `taus` (`NetworkJet`), or
+        `None` where they do not apply (`has_jet`)."""
+        if not self.has_jet:
+            return None
+        alpha, w, beta = self.split(theta)
+        z = w * taus[:, None, None] + beta
+        return NetworkJet(alpha, w, beta, taus, _activation_derivatives(self.activation, z))
 
     def advance(self, theta, ratio):
         if self.mirrored:
