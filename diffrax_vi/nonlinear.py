@@ -33,6 +33,13 @@ few ulps. A residual that stops falling anywhere else is a failure.
 times in a row, above the tolerance), `nonfinite` (NaN/inf in the residual, or everywhere along
 the step) and `singular` (finite residual but a non-finite Newton direction: the linear solve
 broke down). `NetworkVI` turns them into the step failures of `diffrax_vi.results`.
+
+**A second start.** A caller may pass `options["fallback"]`, a function of `args` returning
+another starting point (and optionally `options["fallback_usable"]`, a function of `args`
+returning whether to use it). Where an iteration would end the solve with a failure, the solve
+restarts from that point once, with fresh bookkeeping and the same iteration cap; the final
+state's `restarted` says whether it did. `NetworkVI` passes a fresh trajectory fit when the
+first seed was carried over from the previous step.
 """
 
 from __future__ import annotations
@@ -100,6 +107,7 @@ class _DampedNewtonState(eqx.Module):
     exact: Array  # whether the last iteration used a Jacobian evaluated at its iterate
     f0: Array  # max|F| at the starting point (for `convergence="reference"`)
     still: Array  # whether the last iteration changed x or F by at most 2 eps (relative)
+    restarted: Array  # whether the solve has restarted from `options["fallback"]`
 
 
 def _flat_outputs(options, y, dtype) -> Array:
@@ -181,6 +189,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             exact=jnp.array(False),
             f0=jnp.max(jnp.abs(flat_f), initial=0.0),
             still=jnp.array(False),
+            restarted=jnp.array(False),
         )
 
     def step(self, fn, y, args, options, state, tags):
@@ -311,8 +320,49 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             refresh=~(ok & (a == 1) & (fmax < 0.25 * jnp.max(jnp.abs(f))))
             | (reused >= self.reuse_jacobian)
             | (fmax <= self._tols(dtype)["floor"] * jnp.asarray(options.get("scale", 1.0), dtype)),
+            restarted=state.restarted,
         )
+        if options.get("fallback") is not None:
+            new_y, new_state = self._restart_if_failed(residual, args, options, new_y, new_state)
         return new_y, new_state, aux
+
+    def _restart_if_failed(self, residual, args, options, y, state):
+        """Where this iteration ends the solve with a failure, start once more from the
+        caller's fallback point instead (`options["fallback"](args)`, e.g. a fresh seed when
+        the first came from the previous step), with the iteration cap shared. The fallback is
+        evaluated only where some member of a batch needs it."""
+        _, result = self.terminate(None, y, args, options, state, None)
+        usable = options.get("fallback_usable")
+        usable = jnp.array(True) if usable is None else usable(args)
+        switch = (result != optx.RESULTS.successful) & ~state.restarted & usable
+
+        def fresh_start():
+            start = jax.lax.stop_gradient(options["fallback"](args))
+            f, _ = residual(ravel_pytree(start)[0])
+            return start, f
+
+        start, f = unless_all_skip(switch, fresh_start, (y, state.f))
+        dtype = state.f.dtype
+        restart = _DampedNewtonState(
+            f=f,
+            out=_flat_outputs(options, start, dtype),
+            out_change=jnp.full((), jnp.inf, dtype),
+            fbest=jnp.full((), jnp.inf, dtype),
+            idle=jnp.array(0, jnp.int32),
+            result=optx.RESULTS.successful,
+            stalls=jnp.array(0, jnp.int32),
+            jac=state.jac,
+            refresh=jnp.array(True),
+            reused=jnp.array(0, jnp.int32),
+            exact=jnp.array(False),
+            f0=jnp.max(jnp.abs(f), initial=0.0),
+            still=jnp.array(False),
+            restarted=jnp.array(True),
+        )
+        pick = lambda a, b: jnp.where(switch, a, b)  # noqa: E731
+        y = jax.tree_util.tree_map(pick, start, y)
+        state = jax.tree_util.tree_map(pick, restart, state)
+        return y, state
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, y, args, tags

@@ -65,6 +65,9 @@ class NetworkVIState(eqx.Module):
       seeded by a trajectory fit).
     - `refits`: number of steps seeded by the previous step's neurons with refitted output
       weights instead of a fresh OGA fit (`NetworkVI.reuse_neurons`).
+    - `restarts`: number of steps whose solve failed from a seed carried over from the
+      previous step (warm start or refit) and restarted from a fresh trajectory fit (with
+      `LevenbergMarquardt` or `RegularisedNewton`; the iteration cap covers both tries).
     - `iteration_log`: the iterations of each accepted step, in order, for the first
       `NetworkVI.iteration_log` steps (empty by default).
     - `report`: how the most recent step's nonlinear solve ended (`StepReport`: start time,
@@ -83,6 +86,7 @@ class NetworkVIState(eqx.Module):
     histogram: Array
     warm_starts: Array
     refits: Array
+    restarts: Array
     iteration_log: Array
     report: StepReport
 
@@ -125,8 +129,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `reuse_neurons`: seed a step with the previous step's converged neurons (hidden weights
       and biases) and output weights refitted to the new trajectory by linear least squares,
       when that fit matches the trajectory to within `refit_tolerance`; otherwise (and on the
-      first step) run the OGA. The refit costs a small linear solve where the OGA costs a
-      greedy search over the whole dictionary (about 2 of the 3 ms of an oscillator step), and
+      first step) run the OGA; if the solve from the refit fails, it restarts once from the
+      OGA seed (`NetworkVIState.restarts`). The refit costs a small linear solve where the
+      OGA costs a greedy search over the whole dictionary (about 2 of the 3 ms of an
+      oscillator step), and
       fits as well on smooth motion. Default `False` (the OGA on every step, as the
       reference does): the refitted networks converge to slightly worse-conditioned roots,
       so results move at the level of the residual floor (oscillator, 10 steps of 0.1: max
@@ -307,13 +313,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             and isinstance(self.basis, ShallowNetBasis)
         )
 
-    def _cold_seed(self, ctx: StepContext, state: NetworkVIState):
-        """The seed from a trajectory fit, and whether it reused the previous neurons."""
+    def _cold_seed(self, ctx: StepContext, previous, fresh, history, refit: bool = True):
+        """The seed from a trajectory fit, and whether it reused the previous step's neurons
+        `previous` (never with `refit=False`, nor on a `fresh` start)."""
         labels, p_end = self.initial_trajectory.labels(
-            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, state.history
+            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
         )
         targets, modulated = self.formulation.fit_targets(labels, ctx.q0)
-        previous, fresh = state.theta, state.fresh
         # The seed is a starting point, not part of the solution: no derivative flows through
         # it (and none may, through the while loop of `diffrax_vi.lazy.unless_all_skip`).
         targets, previous = jax.lax.stop_gradient((targets, previous))
@@ -324,7 +330,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
             )
 
-        if self._refits():
+        if refit and self._refits():
             refit, misfit = refit_output_weights(ctx.basis, problem)
             tolerance = self.refit_tolerance
             if tolerance is None:
@@ -335,6 +341,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             reused, theta = jnp.array(False), fresh_fit()
         x = self.formulation.unknowns(theta, labels[-1], p_end)
         return jax.lax.stop_gradient(x), reused
+
+    def _fallback_seed(self, args):
+        """The fresh seed a failed solve restarts from (the root find's `args` carry the
+        step context and the previous step's parameters, `fresh` flag and history)."""
+        ctx, (theta, fresh, history), _ = args
+        return self._cold_seed(ctx, theta, fresh, history, refit=False)[0]
 
     def _warm_seed(self, ctx: StepContext, state: NetworkVIState):
         ratio = ctx.h / state.h_prev
@@ -371,6 +383,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             histogram=jnp.zeros(self.root_find_max_steps + 1, jnp.int32),
             warm_starts=zero,
             refits=zero,
+            restarts=zero,
             iteration_log=jnp.full(self.iteration_log, -1, jnp.int32),
             report=StepReport(
                 t=ctx.t,
@@ -391,6 +404,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         if made_jump is not False:
             state = eqx.tree_at(lambda s: s.history.valid, state, state.history.valid & ~made_jump)
         warm_used = jnp.array(False)
+        cold_inputs = (state.theta, state.fresh, state.history)
         if isinstance(self.initial_trajectory, PreviousStep):
             warm = self._warm_seed(ctx, state)
             residual = jax.tree_util.tree_leaves(self.formulation.residual(warm, ctx))
@@ -400,21 +414,32 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             if made_jump is not False:
                 warm_used = warm_used & ~made_jump
             seed, refitted = jax.lax.cond(
-                warm_used, lambda: (warm, jnp.array(False)), lambda: self._cold_seed(ctx, state)
+                warm_used,
+                lambda: (warm, jnp.array(False)),
+                lambda: self._cold_seed(ctx, *cold_inputs),
             )
         else:
-            seed, refitted = self._cold_seed(ctx, state)
+            seed, refitted = self._cold_seed(ctx, *cold_inputs)
 
+        # A seed carried over from the previous step (warm start or refitted neurons) gets
+        # a second chance: where the solve from it fails, the root finder restarts from a
+        # fresh trajectory fit. The fit's inputs travel in the root find's `args`.
+        restart_inputs = jax.lax.stop_gradient(cold_inputs)
+        jacobian = _jacobian_option(self.root_finder, self.formulation, ctx)
+        options = dict(
+            scale=_residual_scale(ctx),
+            outputs=lambda x: self.formulation.end_state(x, ctx),
+            jacobian=None if jacobian is None else lambda x, a: jacobian(x, a[0]),
+        )
+        if isinstance(self.initial_trajectory, PreviousStep) or self._refits():
+            options["fallback"] = self._fallback_seed
+            options["fallback_usable"] = lambda a: a[2]
         sol = optx.root_find(
-            lambda x, c: self.formulation.residual(x, c),
+            lambda x, a: self.formulation.residual(x, a[0]),
             self.root_finder,
             seed,
-            ctx,
-            options=dict(
-                scale=_residual_scale(ctx),
-                outputs=lambda x: self.formulation.end_state(x, ctx),
-                jacobian=_jacobian_option(self.root_finder, self.formulation, ctx),
-            ),
+            (ctx, restart_inputs, warm_used | refitted),
+            options=options,
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,
             throw=False,
@@ -474,6 +499,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             histogram=state.histogram.at[jnp.minimum(n, self.root_find_max_steps)].add(1),
             warm_starts=state.warm_starts + warm_used.astype(jnp.int32),
             refits=state.refits + refitted.astype(jnp.int32),
+            restarts=state.restarts
+            + jnp.asarray(getattr(sol.state, "restarted", False)).astype(jnp.int32),
             iteration_log=(
                 state.iteration_log.at[state.steps].set(n, mode="drop")
                 if self.iteration_log

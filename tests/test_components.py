@@ -886,3 +886,41 @@ def test_auto_jacobian_hands_the_closed_form_to_the_root_finder():
         assert _jacobian_option(fwd, FreeEndpoints(), ctx) is None
         structured = LevenbergMarquardt(jacobian="structured")
         assert _jacobian_option(structured, FreeEndpoints(), ctx) is not None
+
+
+def _no_root_near_zero(y, args):
+    """`(y² + 1)(y − 3)`: one root, at 3; the residual's size has a local minimum (2.9 at
+    y ≈ 0.18, where the derivative vanishes), where `LevenbergMarquardt` from −1 stalls."""
+    return (y**2 + 1) * (y - 3)
+
+
+def test_root_finder_restarts_once_from_the_fallback():
+    solver, start = LevenbergMarquardt(), jnp.array(-1.0, F64)
+    stalled = _find(_no_root_near_zero, solver, start)
+    assert stalled.result != optx.RESULTS.successful
+    assert not bool(stalled.state.restarted)
+    fallback = dict(fallback=lambda args: jnp.array(4.0, F64))
+    sol = _find(_no_root_near_zero, solver, start, options=fallback)
+    assert sol.result == optx.RESULTS.successful and bool(sol.state.restarted)
+    assert abs(float(sol.value) - 3.0) <= 1e-12
+    # the caller may rule the restart out at run time ...
+    off = _find(_no_root_near_zero, solver, start,
+                options=dict(fallback_usable=lambda args: jnp.array(False), **fallback))
+    assert off.result != optx.RESULTS.successful and not bool(off.state.restarted)
+    # ... and it happens once: a fallback that stalls too ends the solve as a failure
+    again = _find(_no_root_near_zero, solver, start, options=dict(fallback=lambda args: start))
+    assert again.result != optx.RESULTS.successful and bool(again.state.restarted)
+    # under vmap only the member that needs it restarts; the other keeps its own path
+    batch = jax.vmap(lambda y: _find(_no_root_near_zero, solver, y, options=fallback))(
+        jnp.array([-1.0, 2.5], F64))
+    assert bool(jnp.all(batch.result == optx.RESULTS.successful))
+    np.testing.assert_allclose(batch.value, 3.0, atol=1e-12)
+    assert batch.state.restarted.tolist() == [True, False]
+
+
+def test_regularised_newton_restarts_too():
+    """`y² + 1` has no root: the solve stalls, restarts from the fallback, stalls again and
+    fails."""
+    sol = _find(lambda y, args: y**2 + 1, RegularisedNewton(), jnp.array(0.5, F64),
+                options=dict(fallback=lambda args: jnp.array(-0.5, F64)))
+    assert sol.result != optx.RESULTS.successful and bool(sol.state.restarted)

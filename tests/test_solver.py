@@ -363,6 +363,23 @@ def test_fast_configuration_refits_and_keeps_accuracy():
     assert int(state.iterations) < int(default.solver_state.iterations)
 
 
+def test_failed_solve_from_a_carried_seed_restarts_from_a_fresh_fit():
+    """Double pendulum, h = 0.05: the solve from the refitted neurons stalls on the second
+    step (measured: residual 1.0e-9 after 51 iterations), the OGA seed converges there.
+    With the restart the run goes on (measured: 400 steps, and 3 397 before both seeds
+    fail at t = 169.8)."""
+    problem = problems.double_pendulum().with_span(n_steps=60, dt=0.05)
+    sol = solve(problem, shallow(dvi.tanh, 10, 16, **FAST), throw=False)
+    assert sol.result == diffrax.RESULTS.successful, dvi.describe_failure(sol)
+    state = sol.solver_state
+    assert int(state.steps) == 60 and int(state.restarts) >= 1
+    assert int(state.refits) >= 50  # the refit still seeds almost every step
+    assert max_relative_error(problem, sol) <= 1e-8
+    # the default seed (a fresh fit on every step) never restarts
+    default = solve(problem.with_span(n_steps=5), shallow(dvi.tanh, 10, 16), throw=False)
+    assert int(default.solver_state.restarts) == 0
+
+
 def test_refit_tolerance_zero_falls_back_to_the_oga():
     problem = problems.harmonic_oscillator()
     sol = solve(problem, shallow(dvi.tanh, 10, 8, reuse_neurons=True, refit_tolerance=0.0))

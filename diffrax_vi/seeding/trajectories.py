@@ -160,7 +160,8 @@ class PreviousStep(AbstractInitialTrajectory):
     its end — no trajectory and no fit. A cheap acceptance test guards it: if the residual of
     the variational equations at the warm start exceeds `tolerance·scale` (`scale = 1 +
     max(|q_n|, |p_n|)`), the step is seeded by `first` instead, as are the first step and a
-    step after `made_jump`.
+    step after `made_jump`. If the solve from an accepted warm start fails, it restarts once
+    from `first`'s seed (with `LevenbergMarquardt` or `RegularisedNewton`).
 
     **Arguments:**
 
