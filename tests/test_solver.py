@@ -375,6 +375,11 @@ def test_failed_solve_from_a_carried_seed_restarts_from_a_fresh_fit():
     assert int(state.steps) == 60 and int(state.restarts) >= 1
     assert int(state.refits) >= 50  # the refit still seeds almost every step
     assert max_relative_error(problem, sol) <= 1e-8
+    # without the restart the run stops at step 2
+    off = solve(problem, shallow(dvi.tanh, 10, 16, restart_failed=False, **FAST), throw=False)
+    assert off.result != diffrax.RESULTS.successful and int(off.solver_state.steps) < 60
+    with pytest.raises(TypeError, match="restart_failed"):
+        shallow(dvi.tanh, 10, 16, restart_failed=1)
     # the default seed (a fresh fit on every step) never restarts
     default = solve(problem.with_span(n_steps=5), shallow(dvi.tanh, 10, 16), throw=False)
     assert int(default.solver_state.restarts) == 0
