@@ -110,6 +110,28 @@ class _DampedNewtonState(eqx.Module):
     restarted: Array  # whether the solve has restarted from `options["fallback"]`
 
 
+def _start_state(f: Array, out: Array, jac: Array, restarted: bool) -> _DampedNewtonState:
+    """The state at a starting point (the seed, or the fallback of a restart): fresh
+    bookkeeping, a Jacobian due on the first iteration."""
+    dtype = f.dtype
+    return _DampedNewtonState(
+        f=f,
+        out=out,
+        out_change=jnp.full((), jnp.inf, dtype),
+        fbest=jnp.full((), jnp.inf, dtype),
+        idle=jnp.array(0, jnp.int32),
+        result=optx.RESULTS.successful,
+        stalls=jnp.array(0, jnp.int32),
+        jac=jac,
+        refresh=jnp.array(True),
+        reused=jnp.array(0, jnp.int32),
+        exact=jnp.array(False),
+        f0=jnp.max(jnp.abs(f), initial=0.0),
+        still=jnp.array(False),
+        restarted=jnp.array(restarted),
+    )
+
+
 def _flat_outputs(options, y, dtype) -> Array:
     outputs = options.get("outputs")
     if outputs is None:
@@ -174,23 +196,8 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         f, _ = fn(y, args)
         flat_f, _ = ravel_pytree(f)
         dtype = flat_f.dtype
-        n_y = ravel_pytree(y)[0].size
-        return _DampedNewtonState(
-            f=flat_f,
-            out=_flat_outputs(options, y, dtype),
-            out_change=jnp.full((), jnp.inf, dtype),
-            fbest=jnp.full((), jnp.inf, dtype),
-            idle=jnp.array(0, jnp.int32),
-            result=optx.RESULTS.successful,
-            stalls=jnp.array(0, jnp.int32),
-            jac=jnp.zeros((flat_f.size, n_y), dtype),
-            refresh=jnp.array(True),
-            reused=jnp.array(0, jnp.int32),
-            exact=jnp.array(False),
-            f0=jnp.max(jnp.abs(flat_f), initial=0.0),
-            still=jnp.array(False),
-            restarted=jnp.array(False),
-        )
+        jac = jnp.zeros((flat_f.size, ravel_pytree(y)[0].size), dtype)
+        return _start_state(flat_f, _flat_outputs(options, y, dtype), jac, restarted=False)
 
     def step(self, fn, y, args, options, state, tags):
         del tags
@@ -342,23 +349,8 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             return start, f
 
         start, f = unless_all_skip(switch, fresh_start, (y, state.f))
-        dtype = state.f.dtype
-        restart = _DampedNewtonState(
-            f=f,
-            out=_flat_outputs(options, start, dtype),
-            out_change=jnp.full((), jnp.inf, dtype),
-            fbest=jnp.full((), jnp.inf, dtype),
-            idle=jnp.array(0, jnp.int32),
-            result=optx.RESULTS.successful,
-            stalls=jnp.array(0, jnp.int32),
-            jac=state.jac,
-            refresh=jnp.array(True),
-            reused=jnp.array(0, jnp.int32),
-            exact=jnp.array(False),
-            f0=jnp.max(jnp.abs(f), initial=0.0),
-            still=jnp.array(False),
-            restarted=jnp.array(True),
-        )
+        out = _flat_outputs(options, start, state.f.dtype)
+        restart = _start_state(f, out, state.jac, restarted=True)
         pick = lambda a, b: jnp.where(switch, a, b)  # noqa: E731
         y = jax.tree_util.tree_map(pick, start, y)
         state = jax.tree_util.tree_map(pick, restart, state)

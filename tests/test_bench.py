@@ -299,3 +299,17 @@ def test_full_grid_sample_draws_whole_compilation_groups():
             assert len(cases) == (4 if solver == "LevenbergMarquardt" else 20)
     again = module.sample_groups("pendulum", 3, seed=1)
     assert [g[0][0] for g in again.values()] == [g[0][0] for g in strata.values()]
+
+
+def test_long_runs_script_reports_steps_restarts_and_energy(capsys):
+    """benchmarks/long_runs.py: a tiny oscillator run, with and without the restart switch."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "long_runs.py")
+    spec = importlib.util.spec_from_file_location("long_runs", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(["harmonic_oscillator", "0.1", "5", "6", "6", "fast", "--no-restart"])
+    out = capsys.readouterr().out
+    assert "ok True, steps done 5, restarts 0" in out
+    assert "max relative energy error" in out
