@@ -38,8 +38,11 @@ broke down). `NetworkVI` turns them into the step failures of `diffrax_vi.result
 another starting point (and optionally `options["fallback_usable"]`, a function of `args`
 returning whether to use it). Where an iteration would end the solve with a failure, the solve
 restarts from that point once, with fresh bookkeeping and the same iteration cap; the final
-state's `restarted` says whether it did. `NetworkVI` passes a fresh trajectory fit when the
-first seed was carried over from the previous step.
+state's `restarted` says whether it did. `options["start_at_fallback"]`, a function of `args`
+returning a boolean, makes the solve begin at the fallback instead of `y` (which then only
+gives the shape), with no restart after it. `NetworkVI` passes a fresh trajectory fit as the
+fallback when its seed may come from the previous step, and starts there when the carried
+seed is unusable: the fit then exists once in the compiled step, evaluated only where needed.
 """
 
 from __future__ import annotations
@@ -107,10 +110,14 @@ class _DampedNewtonState(eqx.Module):
     exact: Array  # whether the last iteration used a Jacobian evaluated at its iterate
     f0: Array  # max|F| at the starting point (for `convergence="reference"`)
     still: Array  # whether the last iteration changed x or F by at most 2 eps (relative)
-    restarted: Array  # whether the solve has restarted from `options["fallback"]`
+    restarted: Array  # whether the solve has restarted from `options["fallback"]` after a failure
+    pending: Array  # whether the next iteration starts at the fallback (`start_at_fallback`)
+    from_fallback: Array  # whether the solve is running from the fallback (no further restart)
 
 
-def _start_state(f: Array, out: Array, jac: Array, restarted: bool) -> _DampedNewtonState:
+def _start_state(
+    f: Array, out: Array, jac: Array, restarted, pending=False, from_fallback=False
+) -> _DampedNewtonState:
     """The state at a starting point (the seed, or the fallback of a restart): fresh
     bookkeeping, a Jacobian due on the first iteration."""
     dtype = f.dtype
@@ -128,7 +135,9 @@ def _start_state(f: Array, out: Array, jac: Array, restarted: bool) -> _DampedNe
         exact=jnp.array(False),
         f0=jnp.max(jnp.abs(f), initial=0.0),
         still=jnp.array(False),
-        restarted=jnp.array(restarted),
+        restarted=jnp.asarray(restarted),
+        pending=jnp.asarray(pending),
+        from_fallback=jnp.asarray(from_fallback),
     )
 
 
@@ -197,7 +206,15 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         flat_f, _ = ravel_pytree(f)
         dtype = flat_f.dtype
         jac = jnp.zeros((flat_f.size, ravel_pytree(y)[0].size), dtype)
-        return _start_state(flat_f, _flat_outputs(options, y, dtype), jac, restarted=False)
+        start_at_fallback = options.get("start_at_fallback")
+        pending = (
+            jnp.array(False)
+            if start_at_fallback is None or options.get("fallback") is None
+            else jnp.asarray(start_at_fallback(args))
+        )
+        return _start_state(
+            flat_f, _flat_outputs(options, y, dtype), jac, restarted=False, pending=pending
+        )
 
     def step(self, fn, y, args, options, state, tags):
         del tags
@@ -207,6 +224,10 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         def residual(v):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
+
+        if options.get("fallback") is not None:
+            y, state = self._switch_to_fallback(residual, args, options, y, state)
+            flat_y = ravel_pytree(y)[0]
 
         def residual_and_copy(v):
             f, aux = residual(v)
@@ -328,20 +349,26 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             | (reused >= self.reuse_jacobian)
             | (fmax <= self._tols(dtype)["floor"] * jnp.asarray(options.get("scale", 1.0), dtype)),
             restarted=state.restarted,
+            pending=state.pending,
+            from_fallback=state.from_fallback,
         )
-        if options.get("fallback") is not None:
-            new_y, new_state = self._restart_if_failed(residual, args, options, new_y, new_state)
         return new_y, new_state, aux
 
-    def _restart_if_failed(self, residual, args, options, y, state):
-        """Where this iteration ends the solve with a failure, start once more from the
-        caller's fallback point instead (`options["fallback"](args)`, e.g. a fresh seed when
-        the first came from the previous step), with the iteration cap shared. The fallback is
-        evaluated only where some member of a batch needs it."""
-        _, result = self.terminate(None, y, args, options, state, None)
+    def _restartable(self, args, options, state) -> Array:
+        """Whether the solve has failed and may restart from the caller's fallback."""
+        if options.get("fallback") is None:
+            return jnp.array(False)
+        _, result = self._outcome(options, state)
         usable = options.get("fallback_usable")
         usable = jnp.array(True) if usable is None else usable(args)
-        switch = (result != optx.RESULTS.successful) & ~state.restarted & usable
+        return (result != optx.RESULTS.successful) & ~state.from_fallback & usable
+
+    def _switch_to_fallback(self, residual, args, options, y, state):
+        """Before an iteration: where the solve is due to start at the caller's fallback point
+        (`options["fallback"](args)`), or failed and may restart there once, continue from
+        that point with fresh bookkeeping; the iteration cap is shared. The one evaluation of
+        the fallback in the compiled loop runs only where some member of a batch needs it."""
+        switch = state.pending | self._restartable(args, options, state)
 
         def fresh_start():
             start = jax.lax.stop_gradient(options["fallback"](args))
@@ -350,14 +377,24 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
 
         start, f = unless_all_skip(switch, fresh_start, (y, state.f))
         out = _flat_outputs(options, start, state.f.dtype)
-        restart = _start_state(f, out, state.jac, restarted=True)
+        restart = _start_state(
+            f, out, state.jac, restarted=~state.pending, from_fallback=True
+        )
         pick = lambda a, b: jnp.where(switch, a, b)  # noqa: E731
         y = jax.tree_util.tree_map(pick, start, y)
         state = jax.tree_util.tree_map(pick, restart, state)
         return y, state
 
     def terminate(self, fn, y, args, options, state, tags):
-        del fn, y, args, tags
+        del fn, y, tags
+        done, result = self._outcome(options, state)
+        # Not done, and no failure yet, while a start at, or a restart from, the caller's
+        # fallback is due (optimistix's loop stops at the first non-successful result).
+        due = state.pending | self._restartable(args, options, state)
+        return done & ~due, optx.RESULTS.where(due, optx.RESULTS.successful, result)
+
+    def _outcome(self, options, state):
+        """Whether the solve has converged or failed, and its result so far."""
         dtype = state.f.dtype
         tol = self._tols(dtype)
         scale = jnp.asarray(options.get("scale", 1.0), dtype)

@@ -145,8 +145,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `restart_failed`: where the solve from a seed carried over from the previous step
       (`PreviousStep` warm start, `reuse_neurons` refit) fails, restart it once from a fresh
       trajectory fit (with `LevenbergMarquardt` or `RegularisedNewton`). Default `True`.
-      It puts a second copy of the seed fit into the compiled step: the fast configuration
-      of `benchmarks/speed.py` compiled in 12.3 s instead of 9.7 s (double pendulum).
+      With those root finders the fresh fit is their fallback point, in the compiled step
+      once: they start there where the carried seed is unusable, and restart there when
+      allowed, so the switch costs no compile time.
     - `root_finder`: the per-step root finder. Default `LevenbergMarquardt()`, whose
       tolerances scale with the working precision. Any `optimistix` root finder works.
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
@@ -321,40 +322,74 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             and isinstance(self.basis, ShallowNetBasis)
         )
 
-    def _cold_seed(self, ctx: StepContext, previous, fresh, history, refit: bool = True):
-        """The seed from a trajectory fit, and whether it reused the previous step's neurons
-        `previous` (never with `refit=False`, nor on a `fresh` start)."""
+    def _lazy_fresh_fit(self) -> bool:
+        """Whether the fresh seed fit is left to the root finder: where the seed may be carried
+        over from the previous step, the fit is the root finder's fallback, evaluated (once in
+        the compiled step) where the carried seed is unusable or its solve fails."""
+        return isinstance(self.root_finder, AbstractDampedNewton) and (
+            isinstance(self.initial_trajectory, PreviousStep) or self._refits()
+        )
+
+    def _fit_inputs(self, ctx: StepContext, previous, fresh, history):
+        """What a seed fit needs: the fit problem for the trajectory seed's labels (with the
+        previous step's parameters `previous`, unused on a `fresh` start), and the labels'
+        end position and momentum."""
         labels, p_end = self.initial_trajectory.labels(
             ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
         )
         targets, modulated = self.formulation.fit_targets(labels, ctx.q0)
         # The seed is a starting point, not part of the solution: no derivative flows through
         # it (and none may, through the while loop of `diffrax_vi.lazy.unless_all_skip`).
-        targets, previous = jax.lax.stop_gradient((targets, previous))
-        problem = fit_problem(targets, modulated, previous, fresh)
+        targets, previous, q_end, p_end = jax.lax.stop_gradient(
+            (targets, previous, labels[-1], p_end)
+        )
+        return fit_problem(targets, modulated, previous, fresh), q_end, p_end
 
-        def fresh_fit():
-            return seed_parameters(
-                self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
-            )
+    def _fresh_seed(self, ctx: StepContext, inputs):
+        """The seed from a fresh fit (`initial_guess`) of the trajectory seed."""
+        problem, q_end, p_end = inputs
+        theta = seed_parameters(
+            self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
+        )
+        return jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
 
-        if refit and self._refits():
-            refit, misfit = refit_output_weights(ctx.basis, problem)
-            tolerance = self.refit_tolerance
-            if tolerance is None:
-                tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
-            reused = ~fresh & (misfit <= tolerance)
-            theta = unless_all_skip(~reused, fresh_fit, refit)
-        else:
-            reused, theta = jnp.array(False), fresh_fit()
-        x = self.formulation.unknowns(theta, labels[-1], p_end)
-        return jax.lax.stop_gradient(x), reused
+    def _cold_seed(self, ctx: StepContext, previous, fresh, history, lazy: bool = False):
+        """The seed from a trajectory fit, whether it reused the previous step's neurons
+        `previous` (`reuse_neurons`; never on a `fresh` start), and the fit's inputs. With
+        `lazy`, a refit that is not reused is returned as it is: the caller starts from the
+        fresh fit instead."""
+        inputs = self._fit_inputs(ctx, previous, fresh, history)
+        if not self._refits():
+            return self._fresh_seed(ctx, inputs), jnp.array(False), inputs
+        problem, q_end, p_end = inputs
+        theta, misfit = refit_output_weights(ctx.basis, problem)
+        tolerance = self.refit_tolerance
+        if tolerance is None:
+            tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
+        reused = ~fresh & (misfit <= tolerance)
+        x = jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
+        if not lazy:
+            x = unless_all_skip(~reused, lambda: self._fresh_seed(ctx, inputs), x)
+        return x, reused, inputs
 
     def _fallback_seed(self, args):
-        """The fresh seed a failed solve restarts from (the root find's `args` carry the
-        step context and the previous step's parameters, `fresh` flag and history)."""
-        ctx, (theta, fresh, history), _ = args
-        return self._cold_seed(ctx, theta, fresh, history, refit=False)[0]
+        """The fresh seed the root finder starts or restarts from. Its `args` carry the step
+        context, the previous step's parameters, `fresh` flag and history, and the fit's
+        inputs where the step computed them already (else `None`)."""
+        ctx, cold_inputs, _, inputs = args
+        if inputs is None:
+            inputs = self._fit_inputs(ctx, *cold_inputs)
+        return self._fresh_seed(ctx, inputs)
+
+    def _warm_acceptable(self, warm, ctx: StepContext, state: NetworkVIState, made_jump):
+        """Whether the warm start's residual passes `PreviousStep`'s acceptance test."""
+        residual = jax.tree_util.tree_leaves(self.formulation.residual(warm, ctx))
+        fmax = jnp.max(jnp.stack([jnp.max(jnp.abs(r)) for r in residual]))
+        tolerance = self.initial_trajectory.accept_tolerance(ctx.q0.dtype)
+        used = ~state.fresh & (fmax <= tolerance * _residual_scale(ctx))
+        if made_jump is not False:
+            used = used & ~made_jump
+        return used
 
     def _warm_seed(self, ctx: StepContext, state: NetworkVIState):
         ratio = ctx.h / state.h_prev
@@ -413,25 +448,29 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             state = eqx.tree_at(lambda s: s.history.valid, state, state.history.valid & ~made_jump)
         warm_used = jnp.array(False)
         cold_inputs = (state.theta, state.fresh, state.history)
-        if isinstance(self.initial_trajectory, PreviousStep):
+        fit_inputs = None  # the seed fit's inputs, where computed outside a `cond`
+        lazy = self._lazy_fresh_fit()
+        if lazy and not self._refits():
+            # Only a warm start can be carried over; the fresh fit is the root finder's.
             warm = self._warm_seed(ctx, state)
-            residual = jax.tree_util.tree_leaves(self.formulation.residual(warm, ctx))
-            fmax = jnp.max(jnp.stack([jnp.max(jnp.abs(r)) for r in residual]))
-            tolerance = self.initial_trajectory.accept_tolerance(ctx.q0.dtype)
-            warm_used = ~state.fresh & (fmax <= tolerance * _residual_scale(ctx))
-            if made_jump is not False:
-                warm_used = warm_used & ~made_jump
+            warm_used = self._warm_acceptable(warm, ctx, state, made_jump)
+            seed, refitted = warm, jnp.array(False)
+        elif isinstance(self.initial_trajectory, PreviousStep):
+            warm = self._warm_seed(ctx, state)
+            warm_used = self._warm_acceptable(warm, ctx, state, made_jump)
             seed, refitted = jax.lax.cond(
                 warm_used,
                 lambda: (warm, jnp.array(False)),
-                lambda: self._cold_seed(ctx, *cold_inputs),
+                lambda: self._cold_seed(ctx, *cold_inputs, lazy=lazy)[:2],
             )
         else:
-            seed, refitted = self._cold_seed(ctx, *cold_inputs)
+            seed, refitted, fit_inputs = self._cold_seed(ctx, *cold_inputs, lazy=lazy)
+        carried = warm_used | refitted
 
-        # A seed carried over from the previous step (warm start or refitted neurons) gets
-        # a second chance: where the solve from it fails, the root finder restarts from a
-        # fresh trajectory fit. The fit's inputs travel in the root find's `args`.
+        # The fresh trajectory fit, whose inputs travel in the root find's `args`, is the
+        # root finder's fallback: it starts there where the carried seed (warm start or
+        # refitted neurons) is unusable, and restarts there once where the solve from the
+        # carried seed fails (`restart_failed`).
         restart_inputs = jax.lax.stop_gradient(cold_inputs)
         jacobian = _jacobian_option(self.root_finder, self.formulation, ctx)
         options = dict(
@@ -439,16 +478,18 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             outputs=lambda x: self.formulation.end_state(x, ctx),
             jacobian=None if jacobian is None else lambda x, a: jacobian(x, a[0]),
         )
-        if self.restart_failed and (
-            isinstance(self.initial_trajectory, PreviousStep) or self._refits()
-        ):
+        if lazy:
             options["fallback"] = self._fallback_seed
-            options["fallback_usable"] = lambda a: a[2]
+            options["start_at_fallback"] = lambda a: ~a[2]
+            restart = self.restart_failed
+            options["fallback_usable"] = lambda a: a[2] & restart
+            # The unused seed only gives the shape: keep it finite.
+            seed = jax.tree_util.tree_map(lambda v: jnp.where(carried, v, 0), seed)
         sol = optx.root_find(
             lambda x, a: self.formulation.residual(x, a[0]),
             self.root_finder,
             seed,
-            (ctx, restart_inputs, warm_used | refitted),
+            (ctx, restart_inputs, carried, fit_inputs if lazy else None),
             options=options,
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,

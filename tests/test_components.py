@@ -918,6 +918,36 @@ def test_root_finder_restarts_once_from_the_fallback():
     assert batch.state.restarted.tolist() == [True, False]
 
 
+def test_root_finder_starts_at_the_fallback_when_told():
+    """`options["start_at_fallback"]`: the solve begins at the fallback (the given point only
+    gives the shape), on the same iterations as a solve begun there, counts no restart, and
+    never restarts after it."""
+    solver = LevenbergMarquardt()
+    direct = _find(_no_root_near_zero, solver, jnp.array(4.0, F64))
+    options = dict(fallback=lambda args: jnp.array(4.0, F64),
+                   start_at_fallback=lambda args: jnp.array(True))
+    # from the given point −1 the solve would stall; and 3, a root, would end it at once
+    for given in (-1.0, 3.0):
+        sol = _find(_no_root_near_zero, solver, jnp.array(given, F64), options=options)
+        assert sol.result == optx.RESULTS.successful and not bool(sol.state.restarted)
+        assert float(sol.value) == float(direct.value)
+        assert int(sol.stats["num_steps"]) == int(direct.stats["num_steps"])  # same path
+    # a fallback that stalls ends the solve as a failure: no second start from it
+    stalls = dict(fallback=lambda args: jnp.array(-1.0, F64),
+                  start_at_fallback=lambda args: jnp.array(True))
+    sol = _find(_no_root_near_zero, solver, jnp.array(4.0, F64), options=stalls)
+    assert sol.result != optx.RESULTS.successful and not bool(sol.state.restarted)
+    # decided at run time, per member of a batch: one starts at the fallback (4, where the
+    # given −1 would stall), the other keeps its own start and restarts there when it fails
+    options = dict(fallback=lambda args: jnp.array(4.0, F64), start_at_fallback=lambda a: a)
+    batch = jax.vmap(lambda y, start: optx.root_find(
+        _no_root_near_zero, solver, y, start, throw=False, max_steps=100, options=options))(
+        jnp.array([-1.0, -1.0], F64), jnp.array([True, False]))
+    assert bool(jnp.all(batch.result == optx.RESULTS.successful))
+    np.testing.assert_allclose(batch.value, 3.0, atol=1e-12)
+    assert batch.state.restarted.tolist() == [False, True]
+
+
 def test_regularised_newton_restarts_too():
     """`y² + 1` has no root: the solve stalls, restarts from the fallback, stalls again and
     fails."""

@@ -438,3 +438,26 @@ def test_fast_configuration_keeps_float32():
     sol = solve(problem, solver, dtype=jnp.float32)
     assert sol.result == diffrax.RESULTS.successful and sol.ys[0].dtype == jnp.float32
     assert int(sol.solver_state.refits) >= 1
+
+
+@pytest.mark.parametrize("carried", ["reuse_neurons", "previous_step"])
+def test_restart_adds_no_second_seed_fit_to_the_step(carried):
+    """The fresh seed fit is the root finder's fallback, in the compiled step once: the
+    restart (`restart_failed=True`) traces to a program of the same size as without it
+    (before, the restart's own copy of the fit doubled it)."""
+    problem = problems.harmonic_oscillator()
+    kwargs = dict(reuse_neurons=True) if carried == "reuse_neurons" else dict(
+        initial_trajectory=dvi.PreviousStep())
+
+    def traced_size(restart):
+        solver = shallow(dvi.tanh, 4, 4, restart_failed=restart, **kwargs)
+        y0 = problem.y0
+
+        def step(y):
+            state = solver.init(problem.term, 0.0, 0.1, y, problem.args)
+            return solver.step(problem.term, 0.0, 0.1, y, problem.args, state, False)[0]
+
+        return len(str(jax.make_jaxpr(step)(y0)))
+
+    with_restart, without = traced_size(True), traced_size(False)
+    assert abs(with_restart - without) <= 0.01 * without
