@@ -50,14 +50,9 @@ import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
+from diffrax_vi.bench import iteration_summary, timed  # noqa: E402
 
 H = 0.1
-
-
-def timed(fn, *args):
-    start = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return out, time.perf_counter() - start
 
 
 # The configurations compared: the defaults (the reference's seed on every step, a fresh
@@ -106,16 +101,14 @@ def fixture_run(problem, nodes, steps, repeats, config):
     amplitude = float(np.max(np.abs(problem.reference(problem.ts)[0])))
     q_ref = problem.reference(np.array([t_end]))[0][0]
     error = float(np.max(np.abs(np.asarray(sol.ys[0][-1]) - q_ref))) / amplitude
-    state = sol.solver_state
-    n = int(state.steps)
-    hist = np.asarray(state.histogram)
+    its = iteration_summary(sol.solver_state)
     return dict(
         ok=ok,
-        ms_step=1e3 * total / max(n, 1),
+        ms_step=1e3 * total / max(its["steps"], 1),
         compile_s=first - total,
         error=error,
-        it_median=int(np.searchsorted(np.cumsum(hist), n / 2)),
-        it_mean=int(state.iterations) / max(n, 1),
+        it_median=its["it_median"],
+        it_mean=its["it_mean"],
     )
 
 

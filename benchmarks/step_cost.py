@@ -30,7 +30,6 @@ import platform
 import shlex
 import statistics
 import sys
-import time
 
 import jax
 
@@ -43,14 +42,9 @@ import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
+from diffrax_vi.bench import iteration_summary, timed  # noqa: E402
 
 H = 0.1
-
-
-def timed(fn, y0):
-    start = time.perf_counter()
-    out = jax.block_until_ready(fn(y0))
-    return out, time.perf_counter() - start
 
 
 def measure(problem, solver, repeats, **solve_kwargs) -> dict:
@@ -87,15 +81,9 @@ def measure(problem, solver, repeats, **solve_kwargs) -> dict:
     )
     state = sol.solver_state
     if isinstance(state, dvi.NetworkVIState):
-        steps = int(state.steps)
-        hist = np.asarray(state.histogram)
-        row.update(
-            steps=str(steps),
-            it_median=int(np.searchsorted(np.cumsum(hist), steps / 2)) if steps else None,
-            it_mean=int(state.iterations) / steps if steps else None,
-            it_max=int(state.max_iterations),
-            warm=int(state.warm_starts),
-        )
+        its = iteration_summary(state)
+        steps = its["steps"]
+        row.update(its, steps=str(steps), warm=int(state.warm_starts))
     else:
         steps = int(sol.stats["num_accepted_steps"])
         row["steps"] = f"{steps} (+{int(sol.stats['num_rejected_steps'])} rej.)"

@@ -338,3 +338,19 @@ def test_pendulum_constraint_script_measures_p2_and_projects_it():
     assert module.energy_error(problem, q, p, ok) < 1e-4
     assert module.first_failure(np.array([True, False, False])) == 2
     assert module.first_failure(np.array([True, True])) is None
+
+
+def test_iteration_summary_reads_the_solver_counters():
+    from types import SimpleNamespace
+
+    from diffrax_vi.bench import iteration_summary, timed
+
+    # 5 steps: iterations 2, 2, 3, 3, 7 (histogram index = iterations)
+    hist = np.zeros(9, int)
+    hist[[2, 3, 7]] = [2, 2, 1]
+    state = SimpleNamespace(steps=5, histogram=hist, iterations=17, max_iterations=7)
+    assert iteration_summary(state) == dict(steps=5, it_median=3, it_mean=3.4, it_max=7)
+    empty = SimpleNamespace(steps=0, histogram=np.zeros(9, int), iterations=0, max_iterations=0)
+    assert iteration_summary(empty)["it_median"] is None
+    out, seconds = timed(lambda x: x + 1, np.float64(1.0))
+    assert out == 2.0 and seconds >= 0

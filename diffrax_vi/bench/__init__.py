@@ -11,7 +11,17 @@
 - `seed_quality`: the OGA seed on its own (no integrator), over every configuration.
 """
 
-from .harness import Adaptive, Fixed, SciPy, long_time_energy, read_rows, work_precision, write_rows
+from .harness import (
+    Adaptive,
+    Fixed,
+    SciPy,
+    iteration_summary,
+    long_time_energy,
+    read_rows,
+    timed,
+    work_precision,
+    write_rows,
+)
 from .stability import (
     REFERENCE_RATES,
     StabilityCase,
@@ -27,7 +37,9 @@ __all__ = [
     "Adaptive",
     "Fixed",
     "SciPy",
+    "iteration_summary",
     "long_time_energy",
+    "timed",
     "read_rows",
     "work_precision",
     "write_rows",

@@ -129,18 +129,35 @@ def _energy_errors(problem: Problem, energy, ts, qs, ps) -> np.ndarray:
     return np.abs(h - h0) / (abs(h0) if h0 != 0 else 1.0)
 
 
-def _timed(fn, *args):
+def timed(fn, *args):
+    """`fn(*args)` and its wall time in seconds, waiting for the result's arrays."""
     start = time.perf_counter()
     out = jax.block_until_ready(fn(*args))
     return out, time.perf_counter() - start
 
 
+def iteration_summary(state) -> dict:
+    """Steps and nonlinear iterations per step of a solve, from a `NetworkVIState`'s
+    counters: `steps`, `it_median` (from the iteration histogram; the lower median),
+    `it_mean`, `it_max` (`None` where no step was taken)."""
+    steps = int(state.steps)
+    if steps == 0:
+        return dict(steps=0, it_median=None, it_mean=None, it_max=None)
+    cumulative = np.cumsum(np.asarray(state.histogram))
+    return dict(
+        steps=steps,
+        it_median=int(np.searchsorted(cumulative, steps / 2)),
+        it_mean=int(state.iterations) / steps,
+        it_max=int(state.max_iterations),
+    )
+
+
 def _repeat(fn, args, repeats: int, budget_s: float):
     """Run once to compile, then up to `repeats` more times (stopping when over budget)."""
-    out, first = _timed(fn, *args)
+    out, first = timed(fn, *args)
     times = []
     for _ in range(repeats):
-        out, elapsed = _timed(fn, *args)
+        out, elapsed = timed(fn, *args)
         times.append(elapsed)
         if sum(times) > budget_s:
             break
@@ -446,8 +463,8 @@ def long_time_energy(
                     short_t1 = t0 + (t1 - t0) * 1e-4
                     short = runner.arguments(short_t1, value)
                     full = runner.arguments(t1, value)
-                _, compile_s = _timed(runner.solve, *short)
-                sol, wall = _timed(runner.solve, *full)
+                _, compile_s = timed(runner.solve, *short)
+                sol, wall = timed(runner.solve, *full)
                 meta = _diffrax_metrics(problem, entry, sol)
                 meta.update(wall_s=wall, compile_s=compile_s)
                 ts, q, p = _trajectory(sol)
