@@ -354,3 +354,16 @@ def test_iteration_summary_reads_the_solver_counters():
     assert iteration_summary(empty)["it_median"] is None
     out, seconds = timed(lambda x: x + 1, np.float64(1.0))
     assert out == 2.0 and seconds >= 0
+
+
+def test_compile_phases_script_splits_the_first_call():
+    """benchmarks/compile_phases.py on the smallest fixture: both phases timed, the program
+    sized."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "compile_phases.py")
+    spec = importlib.util.spec_from_file_location("compile_phases", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    trace, compile_s, size = module.phases("harmonic_oscillator", "fast", steps=2)
+    assert trace > 0 and compile_s > 0 and size > 10_000
