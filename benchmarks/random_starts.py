@@ -5,7 +5,7 @@
 width, the failures as `(start, steps completed, residual where the solve stopped)` and the
 median largest error of q relative to the amplitude over the successful starts.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/random_starts.py 8 10 12 [--starts 200]
+    PYTHONPATH=. .venv/bin/python benchmarks/random_starts.py 8 10 12 [--preset OGA1dStable]
 """
 
 from __future__ import annotations
@@ -30,10 +30,11 @@ def random_starts(count: int, seed: int = 0):
     return [(rng.uniform(0.1, 2.0), rng.uniform(0.0, 2 * np.pi)) for _ in range(count)]
 
 
-def failures_for_width(width: int, starts, h: float = 0.1, steps: int = 10):
+def failures_for_width(width: int, starts, h: float = 0.1, steps: int = 10, preset=None):
     base = problems.harmonic_oscillator()
     ts = jnp.linspace(0.0, steps * h, steps + 1)
-    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(8))
+    seed = {} if preset is None else dict(initial_guess=getattr(dvi, preset)())
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(8), **seed)
     run = eqx.filter_jit(lambda y0: diffrax.diffeqsolve(
         base.term, solver, 0.0, steps * h, h, y0,
         saveat=diffrax.SaveAt(ts=ts, solver_state=True), throw=False))
@@ -56,10 +57,11 @@ def main(argv=None):
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("widths", type=int, nargs="+")
     parser.add_argument("--starts", type=int, default=200)
+    parser.add_argument("--preset", help="an OGA preset of diffrax_vi (default: OGA1d)")
     ns = parser.parse_args(argv)
     starts = random_starts(ns.starts)
     for width in ns.widths:
-        failed, median = failures_for_width(width, starts)
+        failed, median = failures_for_width(width, starts, preset=ns.preset)
         listed = ", ".join(f"({i}, {n}, {r:.0e})" for i, n, r in failed)
         print(f"width {width}: {len(failed)} of {len(starts)} failed [{listed}]; median "
               f"max error {median:.1e}", flush=True)
