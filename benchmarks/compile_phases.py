@@ -12,7 +12,9 @@ is the root finder's fallback either way).
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
+import sys
 import time
 
 import jax
@@ -25,15 +27,9 @@ import jax.numpy as jnp  # noqa: E402
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 
-CONFIGS = {
-    "default": dict(),
-    "jacrev": dict(root_finder=dvi.LevenbergMarquardt(jacobian="rev")),
-    "auto": dict(root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
-    "fast": dict(
-        reuse_neurons=True,
-        root_finder=dvi.LevenbergMarquardt(jacobian="auto", settle=0, otol=2.0**-39),
-    ),
-}
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from speed import CONFIGS  # noqa: E402  (the configurations of benchmarks/speed.py)
+
 NODES = {"harmonic_oscillator": 8, "double_pendulum": 16}
 
 
