@@ -142,6 +142,19 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       34: see `benchmarks/speed.py`).
     - `refit_tolerance`: acceptance bound on the relative misfit of the refit (weighted `L²`
       on the step, over `1 + max|q|`). Default `None`: `sqrt(eps)` of the working dtype.
+    - `refit_residual`: refit only from a previous step whose solve ended at a residual of at
+      most this, relative to `1 + max(|q_n|, |p_n|)`; otherwise seed the step by a fresh fit.
+      Default `None`: no limit. Roots left at a higher residual are ill-conditioned, refits
+      carried on from them drift into worse ones, and each step adds an energy error about
+      the size of its residual. For long runs, where that error accumulates, a limit of
+      `2048·eps` (4.5e-13 in float64) keeps most refits and their speed: oscillator, 4000
+      steps of h = 0.25, largest energy error 6.1e-10 (3806 refits, 1.05 ms per step)
+      against 5.4e-9 without it (0.96 ms) and 1.6e-9 for the OGA on every step (3.39 ms;
+      `benchmarks/energy_drift.py`). The right limit depends on the problem: set it a little
+      above the median residual of the defaults' steps (on the double pendulum at h = 0.05
+      that median is 4e-10, and this limit would leave almost no refits). It does not suit a
+      root finder that stops early (`settle=0`): its residuals sit above the limit, so most
+      steps would pay for the OGA.
     - `restart_failed`: where the solve from a seed carried over from the previous step
       (`PreviousStep` warm start, `reuse_neurons` refit) fails, restart it once from a fresh
       trajectory fit (with `LevenbergMarquardt` or `RegularisedNewton`). Default `True`.
@@ -176,6 +189,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     dict_amount: int = eqx.field(static=True, default=4000)
     reuse_neurons: bool = eqx.field(static=True, default=False)
     refit_tolerance: float | None = eqx.field(static=True, default=None)
+    refit_residual: float | None = eqx.field(static=True, default=None)
     restart_failed: bool = eqx.field(static=True, default=True)
     root_finder: optx.AbstractRootFinder = LevenbergMarquardt()
     root_find_max_steps: int = eqx.field(static=True, default=100)
@@ -271,12 +285,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 "reuse_neurons refits the output weights of a ShallowNetBasis seeded by an OGA "
                 f"configuration; got {self.basis!r} with {self.initial_guess!r}"
             )
-        tol = self.refit_tolerance
-        if tol is not None and not (
-            isinstance(tol, int | float) and not isinstance(tol, bool) and math.isfinite(tol)
-            and tol >= 0
-        ):
-            raise ValueError(f"refit_tolerance must be None or a finite number >= 0, got {tol!r}")
+        for name in ("refit_tolerance", "refit_residual"):
+            tol = getattr(self, name)
+            if tol is not None and not (
+                isinstance(tol, int | float) and not isinstance(tol, bool) and tol >= 0
+            ):
+                raise ValueError(f"{name} must be None or a number >= 0, got {tol!r}")
         if not isinstance(self.iteration_log, int) or self.iteration_log < 0:
             raise ValueError(
                 f"iteration_log must be a non-negative integer, got {self.iteration_log!r}"
@@ -353,11 +367,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
         return jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
 
-    def _cold_seed(self, ctx: StepContext, previous, fresh, history, lazy: bool = False):
+    def _cold_seed(
+        self, ctx: StepContext, previous, fresh, history, lazy: bool = False, refit_ok=True
+    ):
         """The seed from a trajectory fit, whether it reused the previous step's neurons
-        `previous` (`reuse_neurons`; never on a `fresh` start), and the fit's inputs. With
-        `lazy`, a refit that is not reused is returned as it is: the caller starts from the
-        fresh fit instead."""
+        `previous` (`reuse_neurons`; never on a `fresh` start, nor where `refit_ok` is false),
+        and the fit's inputs. With `lazy`, a refit that is not reused is returned as it is:
+        the caller starts from the fresh fit instead."""
         inputs = self._fit_inputs(ctx, previous, fresh, history)
         if not self._refits():
             return self._fresh_seed(ctx, inputs), jnp.array(False), inputs
@@ -366,11 +382,20 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         tolerance = self.refit_tolerance
         if tolerance is None:
             tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
-        reused = ~fresh & (misfit <= tolerance)
+        reused = ~fresh & (misfit <= tolerance) & refit_ok
         x = jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
         if not lazy:
             x = unless_all_skip(~reused, lambda: self._fresh_seed(ctx, inputs), x)
         return x, reused, inputs
+
+    def _refit_allowed(self, ctx: StepContext, state: NetworkVIState):
+        """Whether the previous step's root is fit to refit from: its solve ended at a
+        residual of at most `refit_residual` (relative to the residual scale). Roots left at a
+        higher residual are ill-conditioned, and refits carried on from them drift into
+        worse ones, step after step."""
+        if self.refit_residual is None:
+            return jnp.array(True)
+        return state.report.residual <= self.refit_residual * _residual_scale(ctx)
 
     def _fallback_seed(self, args):
         """The fresh seed the root finder starts or restarts from. Its `args` carry the step
@@ -450,6 +475,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         cold_inputs = (state.theta, state.fresh, state.history)
         fit_inputs = None  # the seed fit's inputs, where computed outside a `cond`
         lazy = self._lazy_fresh_fit()
+        refit_ok = self._refit_allowed(ctx, state) if self._refits() else jnp.array(False)
         if lazy and not self._refits():
             # Only a warm start can be carried over; the fresh fit is the root finder's.
             warm = self._warm_seed(ctx, state)
@@ -461,10 +487,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             seed, refitted = jax.lax.cond(
                 warm_used,
                 lambda: (warm, jnp.array(False)),
-                lambda: self._cold_seed(ctx, *cold_inputs, lazy=lazy)[:2],
+                lambda: self._cold_seed(ctx, *cold_inputs, lazy=lazy, refit_ok=refit_ok)[:2],
             )
         else:
-            seed, refitted, fit_inputs = self._cold_seed(ctx, *cold_inputs, lazy=lazy)
+            seed, refitted, fit_inputs = self._cold_seed(
+                ctx, *cold_inputs, lazy=lazy, refit_ok=refit_ok
+            )
         carried = warm_used | refitted
 
         # The fresh trajectory fit, whose inputs travel in the root find's `args`, is the

@@ -367,3 +367,38 @@ def test_compile_phases_script_splits_the_first_call():
     spec.loader.exec_module(module)
     trace, compile_s, size = module.phases("harmonic_oscillator", "fast", steps=2)
     assert trace > 0 and compile_s > 0 and size > 10_000
+
+
+def test_energy_drift_script_reports_slope_and_accepted_residuals():
+    """benchmarks/energy_drift.py: the compiled step loop returns states and accepted
+    residuals, and the summary recovers a known linear drift."""
+    import importlib.util
+
+    import jax.numpy as jnp
+
+    from diffrax_vi import problems
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "energy_drift.py")
+    spec = importlib.util.spec_from_file_location("energy_drift", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    problem = problems.harmonic_oscillator(dtype=jnp.float64)
+    q, p, ok, residual, refits, steady = module.run_steps(
+        module.solver_for("default"), problem, 0.25, 5, repeats=1)
+    assert ok.all() and q.shape == (5, 1) and np.all((residual > 0) & (residual < 1e-8))
+    assert refits == 0 and steady > 0
+    summary = module.drift_summary(problem, q, p, residual)
+    assert summary["residual"][2] == residual.max() and len(summary["windows"]) == 5
+    assert summary["windows"][-1] < 1e-8
+
+    class Drifting:  # energy rises by 1e-9 of E₀ per step
+        t0 = 0.0
+        y0 = (jnp.zeros(1), jnp.ones(1))
+
+        def energy(self, t, q, p):
+            return 1.0 + 1e-9 * q[0]
+
+    steps = np.arange(1.0, 21.0)[:, None]
+    summary = module.drift_summary(Drifting(), steps, np.ones_like(steps), np.full(20, 1e-12))
+    assert summary["slope"] == pytest.approx(1e-9, rel=1e-6)
+    assert summary["change"][0] == pytest.approx(1e-9, rel=1e-6)
