@@ -291,6 +291,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 isinstance(tol, int | float) and not isinstance(tol, bool) and tol >= 0
             ):
                 raise ValueError(f"{name} must be None or a number >= 0, got {tol!r}")
+            if tol is not None and not self.reuse_neurons:
+                raise ValueError(f"{name} applies to refits: pass it with reuse_neurons=True")
         if not isinstance(self.iteration_log, int) or self.iteration_log < 0:
             raise ValueError(
                 f"iteration_log must be a non-negative integer, got {self.iteration_log!r}"

@@ -446,6 +446,8 @@ def test_fast_configuration_in_an_ensemble_matches_single_solves():
         (dict(reuse_neurons=True, refit_residual=-1e-12), "refit_residual"),
         (dict(reuse_neurons=True, refit_residual=float("nan")), "refit_residual"),
         (dict(reuse_neurons=True, refit_residual="small"), "refit_residual"),
+        (dict(refit_residual=1e-12), "reuse_neurons=True"),
+        (dict(refit_tolerance=1e-8), "reuse_neurons=True"),
     ],
 )
 def test_fast_configuration_refuses_bad_options(kwargs, match):
