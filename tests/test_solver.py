@@ -393,26 +393,24 @@ def test_refit_tolerance_zero_falls_back_to_the_oga():
     assert max_relative_error(problem, sol) <= 5e-13
 
 
-def test_refit_residual_refits_only_from_roots_accepted_below_it():
+def test_refit_residual_refits_only_from_roots_accepted_below_it(ho_tanh):
     """`refit_residual` bounds the previous step's accepted residual a refit may start from:
-    0 seeds every step by a fresh fit (the default seed's result), no limit refits every step
-    after the first, and a limit between them alternates (refit roots end above it)."""
-    problem = problems.harmonic_oscillator()
+    0 seeds every step by a fresh fit (the default seed's result); a limit between the
+    residuals of fresh and refitted roots refits some steps, not all (without a limit every
+    step after the first is a refit: see the fast configuration's ensemble test)."""
+    problem, default = ho_tanh
 
     def run(**kwargs):
         return solve(problem, shallow(dvi.tanh, 10, 8, **kwargs), throw=False)
 
-    default = run()
     never = run(reuse_neurons=True, refit_residual=0.0)
-    always = run(reuse_neurons=True)
     limited = run(reuse_neurons=True, refit_residual=5e-13)
     assert int(never.solver_state.refits) == 0
-    assert int(always.solver_state.refits) == int(always.solver_state.steps) - 1 == 9
-    assert 0 < int(limited.solver_state.refits) < 9
+    assert 0 < int(limited.solver_state.refits) < int(limited.solver_state.steps) - 1 == 9
     np.testing.assert_allclose(never.ys[0], default.ys[0], rtol=0, atol=1e-14)
     assert int(never.solver_state.iterations) == int(default.solver_state.iterations)
     # refitted roots sit at a higher residual (the docstring of `reuse_neurons`: 1.2e-11)
-    for sol, bound in ((never, 5e-13), (always, 2e-11), (limited, 2e-11)):
+    for sol, bound in ((never, 5e-13), (limited, 2e-11)):
         assert sol.result == diffrax.RESULTS.successful
         assert max_relative_error(problem, sol) <= bound
 
