@@ -36,6 +36,7 @@ from .seeding.fit import (
     fit_problem,
     refit_output_weights,
     seed_parameters,
+    with_constant_grid,
 )
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
@@ -406,6 +407,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         ctx, cold_inputs, _, inputs = args
         if inputs is None:
             inputs = self._fit_inputs(ctx, *cold_inputs)
+        else:  # the grid came through `args` traced; the OGA wants it constant
+            problem, q_end, p_end = inputs
+            inputs = (with_constant_grid(problem), q_end, p_end)
         return self._fresh_seed(ctx, inputs)
 
     def _warm_acceptable(self, warm, ctx: StepContext, state: NetworkVIState, made_jump):
@@ -466,6 +470,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
+        # Times as arrays: a Python float would be a static argument of the jitted step.
+        t0, t1 = jnp.asarray(t0), jnp.asarray(t1)
+        return _traced_once(type(self)._step)(
+            self, terms, t0, t1, y0, args, solver_state, made_jump
+        )
+
+    def _step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
         ctx = self._context(terms, t0, t1, y0, args)
         state = solver_state
         # `init` checks the first step's length on `h_prev`; this exact `+ 0·h_prev` makes the
@@ -648,6 +659,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
+
+
+@functools.cache
+def _traced_once(step):
+    """`step` jitted: diffrax traces a solver's step up to three times while building its
+    loop (twice to find the loop's types); a jitted step is traced once per signature and
+    the other traces reuse it."""
+    return eqx.filter_jit(step)
 
 
 def _history(ctx: StepContext, curve, q1: Array) -> StepHistory:

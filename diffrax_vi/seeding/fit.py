@@ -29,6 +29,7 @@ __all__ = [
     "LeastSquaresFit",
     "fit_network",
     "fit_problem",
+    "with_constant_grid",
 ]
 
 
@@ -53,6 +54,18 @@ def fit_problem(targets: Array, modulated: bool, previous: PyTree, fresh: Array)
     t, w = Simpson(n).nodes_weights_np()
     modulation = (t * (1 - t)).astype(np_dtype) if modulated else None
     return FitProblem(t.astype(np_dtype), w.astype(np_dtype), modulation, targets, previous, fresh)
+
+
+def with_constant_grid(problem: FitProblem) -> FitProblem:
+    """`problem` with its grid (nodes, weights, modulation) as NumPy constants again.
+
+    A problem that travelled through a transformation's arguments (a root find's `args`, a
+    loop carry) comes back with its grid traced, and the OGA then rebuilds its dictionary
+    inside the compiled program on every call. The grid depends only on the targets' length,
+    so it is rebuilt here instead."""
+    return fit_problem(
+        problem.targets, problem.modulation is not None, problem.previous, problem.fresh
+    )
 
 
 class AbstractParameterSeed(eqx.Module):
