@@ -19,7 +19,8 @@ the first settled exact iteration), its two halves on their own: `settle0` (OGA 
 stop) and `refit` (refitted neurons, the default stop), `refit_limited` (the same, refitting
 only from roots accepted at a residual of at most `2048·eps`, `refit_residual`), and
 `cgvi` (`CGVI(7)`, the polynomial baseline). Width 10 tanh network, Gauss–Legendre 8 nodes,
-float64.
+float64. `--peers tsit5:1e-10 dopri8:1e-12` adds adaptive diffrax runs over the same span
+(PID controller, atol = rtol/100), their energy sampled at 1000 evenly spaced times.
 
     PYTHONPATH=. .venv/bin/python benchmarks/energy_drift.py harmonic_oscillator 0.25 4000
     PYTHONPATH=. .venv/bin/python benchmarks/energy_drift.py henon_heiles 0.1 4000 \
@@ -99,6 +100,34 @@ def run_steps(solver, problem, h: float, steps: int, repeats: int = 0):
             steady)
 
 
+PEERS = {"tsit5": diffrax.Tsit5, "dopri8": diffrax.Dopri8}
+
+
+def peer_run(name: str, rtol: float, problem, h: float, steps: int, samples: int = 1000):
+    """An adaptive diffrax peer over the same span (`steps·h`), its energy sampled at
+    `samples` evenly spaced times. Returns (largest relative energy error, accepted steps,
+    wall seconds of the run after its compiling call, whether it reached the end)."""
+    t1 = problem.t0 + steps * h
+    ts = jnp.linspace(problem.t0, t1, samples + 1)[1:]
+    term = problem.term.to_ode()
+
+    @jax.jit
+    def solve(y0):
+        return diffrax.diffeqsolve(
+            term, PEERS[name](), problem.t0, t1, h, y0, args=problem.args,
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol * 1e-2),
+            saveat=diffrax.SaveAt(ts=ts), max_steps=2**24, throw=False)
+
+    sol = solve(problem.y0)
+    jax.block_until_ready(sol.ys)
+    sol, seconds = timed(solve, problem.y0)
+    e0 = float(problem.energy(problem.t0, *problem.y0))
+    energy = jax.vmap(lambda a, b: problem.energy(problem.t0, a, b))(*sol.ys)
+    ok = bool(sol.result == diffrax.RESULTS.successful)
+    largest = float(jnp.max(jnp.abs(energy - e0))) / abs(e0) if ok else float("inf")
+    return largest, int(sol.stats["num_accepted_steps"]), seconds, ok
+
+
 def drift_summary(problem, q, p, residual) -> dict:
     """Energy drift and accepted-residual statistics of one run (see the module docstring)."""
     e0 = float(problem.energy(problem.t0, *problem.y0))
@@ -130,6 +159,9 @@ def main(argv=None):
     parser.add_argument("--configs", nargs="+", default=["default", "oga2d", "fast", "cgvi"])
     parser.add_argument("--repeats", type=int, default=3,
                         help="timed runs after the first (compiling) one; median quoted")
+    parser.add_argument("--peers", nargs="*", default=[],
+                        help="adaptive diffrax peers over the same span, as NAME:RTOL "
+                             "(NAME in tsit5, dopri8), e.g. dopri8:1e-12")
     ns = parser.parse_args(argv)
     problem = getattr(problems, ns.problem)(dtype=jnp.float64)
     print(f"{ns.problem}, {ns.steps} steps of h = {ns.h}, float64; relative energy error")
@@ -151,6 +183,12 @@ def main(argv=None):
         median, p99, largest = s["residual"]
         print(f"  accepted residual median {median:.1e}, p99 {p99:.1e}, max {largest:.1e}; "
               f"log correlation {s['corr']:.2f}")
+    for peer in ns.peers:
+        name, rtol = peer.split(":")
+        largest, accepted, seconds, ok = peer_run(name, float(rtol), problem, ns.h, ns.steps)
+        status = "reached the end" if ok else "did not reach the end"
+        print(f"\n{name} rtol {rtol}: {status}, {accepted} steps in {seconds:.2f} s "
+              f"(after compiling); largest energy error at 1000 sampled times {largest:.1e}")
 
 
 if __name__ == "__main__":

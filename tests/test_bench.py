@@ -390,6 +390,9 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals():
     summary = module.drift_summary(problem, q, p, residual)
     assert summary["residual"][2] == residual.max() and len(summary["windows"]) == 5
     assert summary["windows"][-1] < 1e-8
+    # an adaptive peer over the same span, energy sampled along it
+    largest, accepted, seconds, ok = module.peer_run("dopri8", 1e-8, problem, 0.25, 5, 4)
+    assert ok and 0 < largest < 1e-6 and accepted > 0 and seconds > 0
 
     class Drifting:  # energy rises by 1e-9 of E₀ per step
         t0 = 0.0

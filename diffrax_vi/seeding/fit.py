@@ -106,7 +106,11 @@ def fit_network(
         )
         return basis.from_neurons(res.W, res.b, res.c)
 
-    return jax.vmap(one, in_axes=1, out_axes=1)(problem.targets)
+    # One greedy fit after another (a compiled loop over coordinates), not `vmap`: batching
+    # the greedy loop costs about a second of tracing, and its batched-predicate selects made
+    # the fit slower for up to 8 coordinates (measured, width 10, 4000-interval dictionary:
+    # 2.2 against 2.9 ms for one coordinate; 10 % slower than `vmap` for 16).
+    return jax.lax.map(one, problem.targets.T).T
 
 
 def refit_output_weights(basis: ShallowNetBasis, problem: FitProblem) -> tuple[Array, Array]:
