@@ -470,8 +470,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
-        # Times as arrays: a Python float would be a static argument of the jitted step.
-        t0, t1 = jnp.asarray(t0), jnp.asarray(t1)
+        # Python-number times become arrays (a static argument of the jitted step would be
+        # traced again for every value), in the state's dtype, as they would combine with it.
+        leaves = jax.tree_util.tree_leaves(y0)
+        dtype = jnp.result_type(*leaves) if leaves else None
+        t0, t1 = (
+            jnp.asarray(t, dtype) if isinstance(t, int | float) else t for t in (t0, t1)
+        )
         return _traced_once(type(self)._step)(
             self, terms, t0, t1, y0, args, solver_state, made_jump
         )

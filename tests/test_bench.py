@@ -405,3 +405,17 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals():
     summary = module.drift_summary(Drifting(), steps, np.ones_like(steps), np.full(20, 1e-12))
     assert summary["slope"] == pytest.approx(1e-9, rel=1e-6)
     assert summary["change"][0] == pytest.approx(1e-9, rel=1e-6)
+
+
+def test_oga_coordinates_script_compares_loop_and_vmap():
+    """benchmarks/oga_coordinates.py: both layouts of the per-coordinate OGA seed give the
+    same parameters, and both are timed."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "oga_coordinates.py")
+    spec = importlib.util.spec_from_file_location("oga_coordinates", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    r = module.compare(2, repeats=1, dict_amount=200)
+    assert r["diff"] <= 1e-10
+    assert min(r["loop"] + r["vmap"]) > 0

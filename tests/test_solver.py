@@ -463,6 +463,11 @@ def test_fast_configuration_keeps_float32():
         problem.y0, state
     )
     assert "f64" not in str(jaxpr)
+    # Python-float times (turned into arrays for the jitted step) stay in the state's dtype
+    jaxpr = jax.make_jaxpr(lambda y, s: solver.step(problem.term, 0.0, 0.1, y, None, s, False))(
+        problem.y0, state
+    )
+    assert "f64" not in str(jaxpr)
     sol = solve(problem, solver, dtype=jnp.float32)
     assert sol.result == diffrax.RESULTS.successful and sol.ys[0].dtype == jnp.float32
     assert int(sol.solver_state.refits) >= 1
