@@ -6,7 +6,12 @@ Configurations as in `benchmarks/speed.py` (`default`, `jacrev`, `auto`, `fast`)
 `--no-restart` sets `restart_failed=False` (the program should not change: the fresh seed fit
 is the root finder's fallback either way).
 
+`--cache` measures JAX's persistent compilation cache instead: the same first call (tracing,
+compiling and one run of the solve) in `--repeats` fresh Python processes sharing one new
+cache directory, so the first compiles and writes the cache and the others read it.
+
     PYTHONPATH=. .venv/bin/python benchmarks/compile_phases.py double_pendulum fast
+    PYTHONPATH=. .venv/bin/python benchmarks/compile_phases.py double_pendulum fast --cache
 """
 
 from __future__ import annotations
@@ -14,7 +19,9 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 
 import jax
@@ -58,6 +65,40 @@ def phases(problem_name: str, config: str, restart: bool = True, steps: int = 20
     return traced, time.perf_counter() - start, size
 
 
+def first_call(problem_name: str, config: str, steps: int = 20, h=0.1) -> float:
+    """Seconds of the first call of one solve (trace, compile or cache read, one run)."""
+    problem = getattr(problems, problem_name)(dtype=jnp.float64).with_span(n_steps=steps, dt=h)
+    solver = dvi.NetworkVI(
+        dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(NODES.get(problem_name, 8)),
+        **CONFIGS[config],
+    )
+
+    @jax.jit
+    def run(y0):
+        return diffrax.diffeqsolve(
+            problem.term, solver, problem.t0, problem.t1, h, y0, args=problem.args,
+            saveat=diffrax.SaveAt(t1=True), max_steps=steps + 1, throw=False,
+        )  # fmt: skip
+
+    start = time.perf_counter()
+    jax.block_until_ready(run(problem.y0))
+    return time.perf_counter() - start
+
+
+def cached_first_calls(problem_name: str, config: str, processes: int = 3, steps: int = 20):
+    """First-call seconds in `processes` fresh processes sharing a new persistent cache."""
+    out = []
+    with tempfile.TemporaryDirectory() as cache:
+        for _ in range(processes):
+            line = subprocess.run(
+                [sys.executable, os.path.abspath(__file__), problem_name, config,
+                 "--child-cache", cache, "--steps", str(steps)],
+                check=True, capture_output=True, text=True,
+            ).stdout.strip().splitlines()[-1]
+            out.append(float(line))
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -66,7 +107,22 @@ def main(argv=None):
     parser.add_argument("config", choices=sorted(CONFIGS))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-restart", action="store_true")
+    parser.add_argument("--cache", action="store_true",
+                        help="first calls in fresh processes sharing a persistent cache")
+    parser.add_argument("--steps", type=int, default=20, help=argparse.SUPPRESS)
+    parser.add_argument("--child-cache", help=argparse.SUPPRESS)
     ns = parser.parse_args(argv)
+    if ns.child_cache:
+        jax.config.update("jax_compilation_cache_dir", ns.child_cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        print(first_call(ns.problem, ns.config, ns.steps))
+        return
+    if ns.cache:
+        seconds = cached_first_calls(ns.problem, ns.config, max(ns.repeats, 2), ns.steps)
+        print(f"{ns.problem} {ns.config}: first call in fresh processes sharing a persistent "
+              f"compilation cache: " + ", ".join(f"{s:.2f} s" for s in seconds)
+              + " (the first one compiles and writes the cache)")
+        return
     rows = []
     for _ in range(ns.repeats):
         jax.clear_caches()

@@ -17,7 +17,10 @@ Configurations (`--configs`): `default` (OGA1d seed on every step), `oga2d` (the
 as seed), `fast` (`benchmarks/speed.py`'s fast configuration: refitted neurons, solve ended at
 the first settled exact iteration), its two halves on their own: `settle0` (OGA seed, early
 stop) and `refit` (refitted neurons, the default stop), `refit_limited` (the same, refitting
-only from roots accepted at a residual of at most `2048·eps`, `refit_residual`), and
+only from roots accepted at a residual of at most `2048·eps`, `refit_residual`), the default
+seed with a shorter stopping rule (`settle1`, `settle2`: that many iterations without the
+residual halving before settled outputs end a solve, against 3 by default; `settle0_otol`: none,
+with the default output tolerance `64·eps`, where `settle0` uses `eps^(3/4)`), and
 `cgvi` (`CGVI(7)`, the polynomial baseline). Width 10 tanh network, Gauss–Legendre 8 nodes,
 float64. `--peers tsit5:1e-10 dopri8:1e-12` adds adaptive diffrax runs over the same span
 (PID controller, atol = rtol/100), their energy sampled at 1000 evenly spaced times.
@@ -61,6 +64,10 @@ def solver_for(config: str, width: int = 10, nodes: int = 8):
     options = {"default": {}, "oga2d": dict(initial_guess=dvi.OGA2d()),
                "fast": SPEED_CONFIGS["fast"],
                "settle0": dict(root_finder=early_stop),
+               # the default seed and output tolerance, fewer iterations at the floor
+               "settle0_otol": dict(root_finder=dvi.LevenbergMarquardt(settle=0)),
+               "settle1": dict(root_finder=dvi.LevenbergMarquardt(settle=1)),
+               "settle2": dict(root_finder=dvi.LevenbergMarquardt(settle=2)),
                "refit": dict(reuse_neurons=True,
                              root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
                "refit_limited": dict(reuse_neurons=True, refit_residual=2048 * EPS,
@@ -74,8 +81,9 @@ def run_steps(solver, problem, h: float, steps: int, repeats: int = 0):
     """`steps` fixed steps from the problem's start in one compiled scan. Returns the states
     `(q, p)` after each step, whether each step succeeded, each step's final residual
     (zeros for solvers without a `report`), the number of steps seeded by a refit
-    (`NetworkVIState.refits`; 0 for other solvers), and the median wall time of `repeats`
-    further runs of the compiled scan (NaN for none)."""
+    (`NetworkVIState.refits`; 0 for other solvers), the median wall time of `repeats`
+    further runs of the compiled scan (NaN for none), and the median nonlinear iterations
+    per accepted step (from `NetworkVIState.histogram`; NaN for other solvers)."""
     term, args = problem.term, problem.args
 
     @eqx.filter_jit
@@ -91,13 +99,17 @@ def run_steps(solver, problem, h: float, steps: int, repeats: int = 0):
             return (y1, state1), (y1, result == diffrax.RESULTS.successful, residual)
 
         (_, state), outs = jax.lax.scan(body, (y0, state), jnp.arange(steps))
-        return outs, getattr(state, "refits", jnp.zeros((), jnp.int32))
+        histogram = getattr(state, "histogram", jnp.zeros(1, jnp.int32))
+        return outs, getattr(state, "refits", jnp.zeros((), jnp.int32)), histogram
 
-    ((q, p), ok, residual), refits = scan(problem.y0)
+    ((q, p), ok, residual), refits, histogram = scan(problem.y0)
+    histogram = np.asarray(histogram)
+    median_iterations = (float(np.searchsorted(np.cumsum(histogram), histogram.sum() / 2))
+                         if histogram.sum() else float("nan"))
     times = [timed(scan, problem.y0)[1] for _ in range(repeats)]
     steady = statistics.median(times) if times else float("nan")
     return (np.asarray(q), np.asarray(p), np.asarray(ok), np.asarray(residual), int(refits),
-            steady)
+            steady, median_iterations)
 
 
 PEERS = {"tsit5": diffrax.Tsit5, "dopri8": diffrax.Dopri8}
@@ -150,6 +162,20 @@ def drift_summary(problem, q, p, residual) -> dict:
     )
 
 
+def _parse_peer(parser, text: str) -> tuple[str, float]:
+    """`NAME:RTOL` of `--peers`, checked before anything runs."""
+    name, _, rtol = text.partition(":")
+    if name not in PEERS:
+        parser.error(f"--peers: unknown peer {name!r} in {text!r}; known: {', '.join(PEERS)}")
+    try:
+        value = float(rtol)
+    except ValueError:
+        value = -1.0
+    if not value > 0:
+        parser.error(f"--peers: {text!r} needs a positive RTOL after the colon, e.g. {name}:1e-10")
+    return name, value
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -163,11 +189,12 @@ def main(argv=None):
                         help="adaptive diffrax peers over the same span, as NAME:RTOL "
                              "(NAME in tsit5, dopri8), e.g. dopri8:1e-12")
     ns = parser.parse_args(argv)
+    peers = [_parse_peer(parser, text) for text in ns.peers]
     problem = getattr(problems, ns.problem)(dtype=jnp.float64)
     print(f"{ns.problem}, {ns.steps} steps of h = {ns.h}, float64; relative energy error")
     for config in ns.configs:
         start = time.perf_counter()
-        q, p, ok, residual, refits, steady = run_steps(
+        q, p, ok, residual, refits, steady, iterations = run_steps(
             solver_for(config), problem, ns.h, ns.steps, ns.repeats)
         first = time.perf_counter() - start - (steady * ns.repeats if ns.repeats else 0.0)
         done = int(np.argmin(ok)) if not ok.all() else ns.steps
@@ -175,7 +202,7 @@ def main(argv=None):
         status = "all steps ok" if done == ns.steps else f"step {done + 1} failed"
         print(f"\n{config}: {status}, {refits} steps seeded by a refit; first run about "
               f"{first:.0f} s, then {1e3 * steady / ns.steps:.2f} ms per step "
-              f"(median of {ns.repeats})")
+              f"(median of {ns.repeats}); median {iterations:.0f} iterations per step")
         print(f"  slope {s['slope']:.2e} per step; largest per tenth: "
               + " ".join(f"{w:.1e}" for w in s["windows"]))
         median, p99, largest = s["change"]
@@ -183,9 +210,8 @@ def main(argv=None):
         median, p99, largest = s["residual"]
         print(f"  accepted residual median {median:.1e}, p99 {p99:.1e}, max {largest:.1e}; "
               f"log correlation {s['corr']:.2f}")
-    for peer in ns.peers:
-        name, rtol = peer.split(":")
-        largest, accepted, seconds, ok = peer_run(name, float(rtol), problem, ns.h, ns.steps)
+    for name, rtol in peers:
+        largest, accepted, seconds, ok = peer_run(name, rtol, problem, ns.h, ns.steps)
         status = "reached the end" if ok else "did not reach the end"
         print(f"\n{name} rtol {rtol}: {status}, {accepted} steps in {seconds:.2f} s "
               f"(after compiling); largest energy error at 1000 sampled times {largest:.1e}")

@@ -233,6 +233,17 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             f, aux = residual(v)
             return f, (f, aux)
 
+        # The residual at the iterate is in the state already (the line search, `init` or the
+        # switch to the fallback computed it there); without an `aux` output (the case of
+        # `optx.root_find(..., has_aux=False)`) it is not evaluated again. Every copy of the
+        # residual in the loop body is another piece of program for XLA to compile.
+        no_aux = jax.eval_shape(lambda: residual(flat_y)[1]) is None
+
+        def residual_here():
+            if no_aux:
+                return state.f, None
+            return residual(flat_y)
+
         given = options.get("jacobian")
         if self.jacobian == "structured" and given is None:
             raise ValueError(
@@ -243,7 +254,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         if given is not None and self.jacobian in ("auto", "structured"):
 
             def fresh():
-                f, aux = residual(flat_y)
+                f, aux = residual_here()
                 return given(y, args).astype(dtype), f, aux
         else:
             jacobian = jax.jacrev if self.jacobian == "rev" else jax.jacfwd
@@ -255,7 +266,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         if self.reuse_jacobian > 0:
             # The residual at the iterate is already in the state; evaluate `aux` alongside.
             # Lazy under vmap: an ensemble pays for the Jacobian only when a member needs it.
-            _, aux = residual(flat_y)
+            _, aux = residual_here()
             refresh = state.refresh
             jac, f, aux = unless_all_skip(refresh, fresh, (state.jac, state.f, aux))
         else:
@@ -276,23 +287,27 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         def acceptable(a, phi):
             return phi <= phi0 + c1 * a * jnp.minimum(slope, 0) + allowance
 
+        # Backtracking from the full step: trial `i` is at `a = 2^-i`, `i = 0 … max_backtracks`,
+        # until one is acceptable. One call site of the residual; the residuals of the last
+        # and of the best trial are carried along, not evaluated again.
         def cond(carry):
-            i, a, _, _, _, phi = carry
-            return (i < self.max_backtracks) & ~acceptable(a, phi)
+            i, a, _, _, _, _, phi = carry
+            return (i == 0) | ((i <= self.max_backtracks) & ~acceptable(a, phi))
 
         def body(carry):
-            i, a, best_a, best_phi, _, _ = carry
-            a = 0.5 * a
+            i, a, best_a, best_phi, best_f, _, _ = carry
+            a = jnp.where(i == 0, a, 0.5 * a)
             fa, phi = trial(a)
-            better = phi < best_phi
+            better = (phi < best_phi) | (i == 0)
             best_a = jnp.where(better, a, best_a)
             best_phi = jnp.where(better, phi, best_phi)
-            return i + 1, a, best_a, best_phi, fa, phi
+            best_f = jnp.where(better, fa, best_f)
+            return i + 1, a, best_a, best_phi, best_f, fa, phi
 
         one = jnp.ones((), dtype)
-        f1, phi1 = trial(one)
-        carry = (jnp.array(0, jnp.int32), one, one, phi1, f1, phi1)
-        _, a, best_a, best_phi, fa, phi = jax.lax.while_loop(cond, body, carry)
+        inf = jnp.full((), jnp.inf, dtype)
+        carry = (jnp.array(0, jnp.int32), one, one, inf, f, f, inf)
+        _, a, best_a, best_phi, best_f, fa, phi = jax.lax.while_loop(cond, body, carry)
         ok = acceptable(a, phi)
         # No acceptable point: take the best trial seen, and count a stall. With a reused
         # Jacobian that is not a stall yet: the next iteration retries with a fresh one, and
@@ -300,9 +315,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         a_used = jnp.where(ok, a, best_a)
         stalls = jnp.where(ok | ~refresh, 0, state.stalls + 1)
         a_used = jnp.where(ok | refresh | (best_phi < phi0), a_used, 0)
-        f_used = unless_all_skip(
-            ~ok & (a_used != 0), lambda: trial(a_used)[0], jnp.where(ok, fa, f)
-        )
+        f_used = jnp.where(ok, fa, jnp.where(a_used != 0, best_f, f))
         # A finite residual with a non-finite direction is a broken-down linear solve
         # (`singular`); a non-finite residual, or one that turns non-finite all along the
         # direction, is `nonfinite`. Either way the iterate stays at the last finite point,

@@ -1,7 +1,8 @@
 """Failure results of a variational step, and where to find the details of a failed step.
 
-A failed per-step solve ends `diffrax.diffeqsolve` with one of four members of
-`diffrax.RESULTS`, one per way the nonlinear solve of a step can end without a root:
+A failed step ends `diffrax.diffeqsolve` with one of these members of `diffrax.RESULTS`: four
+for the ways the nonlinear solve of a step can end without a root, one for a step that cannot
+be taken at all:
 
 | member | `failure_kind` | meaning |
 |---|---|---|
@@ -9,6 +10,7 @@ A failed per-step solve ends `diffrax.diffeqsolve` with one of four members of
 | `RESULTS.vi_step_stalled` | `"diverged"` | the residual stopped falling above the tolerance |
 | `RESULTS.vi_step_nonfinite` | `"nonfinite"` | NaN or inf in the residual or in the end state |
 | `RESULTS.vi_step_singular` | `"singular"` | the linear solve of an iteration broke down |
+| `RESULTS.vi_step_size_invalid` | `"other"` | the step's length is zero or not finite (`dt0`, `t0`, `t1`) |
 
 `diffrax.diffeqsolve` only forwards members of its own `RESULTS`, and only checks results with
 `is_okay`, so the members are registered on `diffrax.RESULTS` itself when `diffrax_vi` is
@@ -58,6 +60,10 @@ _MESSAGES = {
     "vi_step_singular": (
         "diffrax_vi: the linear solve inside a step's nonlinear solve broke down (singular "
         "Jacobian). Use LevenbergMarquardt() or a larger regularisation lam." + _WHERE
+    ),
+    "vi_step_size_invalid": (
+        "diffrax_vi: the step size must be finite and non-zero (check dt0, t0 and t1: a zero "
+        "or NaN dt0, or a NaN time, gives such a step)." + _WHERE
     ),
 }
 

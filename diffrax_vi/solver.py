@@ -432,15 +432,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
         ctx = self._context(terms, t0, t1, y0, args)
-        # diffrax hands `init` the first step `[t0, t0 + dt0]` (clipped to `t1`): a zero or
-        # NaN `dt0` shows up here as a step of zero or NaN length. (diffrax itself refuses a
-        # `dt0` of the wrong sign.)
-        h = eqx.error_if(
-            ctx.h,
-            (ctx.h == 0) | ~jnp.isfinite(ctx.h),
-            "NetworkVI: the step size must be finite and non-zero (check dt0, t0 and t1).",
-        )
-        ctx = eqx.tree_at(lambda c: c.h, ctx, h)
+        # A zero or NaN step (from `dt0`, `t0` or `t1`) is not refused here by a run-time
+        # check: that would be a host callback in the program, and a program with one is
+        # never written to JAX's persistent compilation cache. `step` fails such a step
+        # with `RESULTS.vi_step_size_invalid` instead (diffrax itself refuses a `dt0` of the
+        # wrong sign).
         # The first step seeds itself (`fresh`): computing its seed here would put a second
         # copy of the seed fit into the compiled program.
         theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
@@ -484,9 +480,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def _step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
         ctx = self._context(terms, t0, t1, y0, args)
         state = solver_state
-        # `init` checks the first step's length on `h_prev`; this exact `+ 0·h_prev` makes the
-        # step depend on it, so the check is not pruned as dead code.
-        ctx = eqx.tree_at(lambda c: c.h, ctx, ctx.h + 0 * state.h_prev)
         if made_jump is not False:
             state = eqx.tree_at(lambda s: s.history.valid, state, state.history.valid & ~made_jump)
         warm_used = jnp.array(False)
@@ -552,6 +545,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             finite | (result != diffrax.RESULTS.successful),
             result,
             STEP_FAILURES["vi_step_nonfinite"],
+        )
+        result = diffrax.RESULTS.where(
+            (ctx.h == 0) | ~jnp.isfinite(ctx.h), STEP_FAILURES["vi_step_size_invalid"], result
         )
         # A failed step's end state is never passed off as data: the steps before it stay,
         # this one is NaN (with `throw=False`), and `report` says where and why it failed.

@@ -281,6 +281,25 @@ def test_energy_problem_selection_is_shared_by_serial_and_parallel_runs():
     assert _problem_names("energy", ["kepler", "toda_lattice"]) == ["toda_lattice", "kepler"]
 
 
+def test_published_suites_hold_the_documented_networkvi_settings():
+    """The quick work-precision study compares the warm start and the fast settings, the
+    energy study the warm start and the long-run settings (docs/how-to/choosing.md)."""
+    from diffrax_vi.bench.suites import SETTINGS, energy_entries, networkvi_entries
+
+    setting = SETTINGS["harmonic_oscillator"]
+    warm, fast = networkvi_entries(setting, False)
+    assert warm.name.endswith("warm") and isinstance(
+        warm.solver.initial_trajectory, dvi.PreviousStep)
+    assert fast.name.endswith("fast") and fast.solver.reuse_neurons
+    assert fast.solver.root_finder.settle == 0 and fast.solver.root_finder.jacobian == "auto"
+    assert len(networkvi_entries(setting, True)) == 4
+    first, long_run = energy_entries(setting)
+    assert first.name == warm.name and long_run.name.endswith("long-run")
+    assert long_run.solver.reuse_neurons and long_run.solver.refit_residual == pytest.approx(
+        2048 * np.finfo(np.float64).eps)
+    assert {e.family for e in (warm, fast, first, long_run)} == {"ours"}
+
+
 def test_full_grid_sample_draws_whole_compilation_groups():
     """benchmarks/full_grid_sample.py: per solver, seeded random groups of cases that share a
     compilation (LevenbergMarquardt: 4 dt; RegularisedNewton: 4 dt x 5 λ)."""
@@ -367,9 +386,28 @@ def test_compile_phases_script_splits_the_first_call():
     spec.loader.exec_module(module)
     trace, compile_s, size = module.phases("harmonic_oscillator", "fast", steps=2)
     assert trace > 0 and compile_s > 0 and size > 10_000
+    # --cache: a second process reads the program from the persistent cache the first wrote
+    first, second = module.cached_first_calls("harmonic_oscillator", "fast", 2, steps=2)
+    assert 0 < second < first
 
 
-def test_energy_drift_script_reports_slope_and_accepted_residuals():
+def test_program_parts_script_attributes_operations_to_package_functions():
+    """benchmarks/program_parts.py: every primitive of a traced solve is counted once, the
+    root finder and the residual are among the owners, and the top-level view sums the same."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "program_parts.py")
+    spec = importlib.util.spec_from_file_location("program_parts", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    inner = module.program_parts("harmonic_oscillator", "fast", steps=2)
+    top = module.program_parts("harmonic_oscillator", "fast", depth=1, steps=2)
+    assert sum(inner.values()) == sum(top.values()) > 1000
+    assert any(k.startswith("nonlinear:") for k in inner)
+    assert "solver:NetworkVI._step" in top and "nonlinear:AbstractDampedNewton.step" in top
+
+
+def test_energy_drift_script_reports_slope_and_accepted_residuals(capsys):
     """benchmarks/energy_drift.py: the compiled step loop returns states and accepted
     residuals, and the summary recovers a known linear drift."""
     import importlib.util
@@ -383,10 +421,10 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     problem = problems.harmonic_oscillator(dtype=jnp.float64)
-    q, p, ok, residual, refits, steady = module.run_steps(
+    q, p, ok, residual, refits, steady, iterations = module.run_steps(
         module.solver_for("default"), problem, 0.25, 5, repeats=1)
     assert ok.all() and q.shape == (5, 1) and np.all((residual > 0) & (residual < 1e-8))
-    assert refits == 0 and steady > 0
+    assert refits == 0 and steady > 0 and 2 <= iterations <= 20
     summary = module.drift_summary(problem, q, p, residual)
     assert summary["residual"][2] == residual.max() and len(summary["windows"]) == 5
     assert summary["windows"][-1] < 1e-8
@@ -405,6 +443,12 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals():
     summary = module.drift_summary(Drifting(), steps, np.ones_like(steps), np.full(20, 1e-12))
     assert summary["slope"] == pytest.approx(1e-9, rel=1e-6)
     assert summary["change"][0] == pytest.approx(1e-9, rel=1e-6)
+    # a mistyped peer is refused before anything runs, with the known names
+    for bad, words in (("tsit6:1e-10", "unknown peer 'tsit6'"), ("dopri8", "positive RTOL"),
+                       ("dopri8:x", "positive RTOL")):
+        with pytest.raises(SystemExit):
+            module.main(["harmonic_oscillator", "0.25", "5", "--configs", "cgvi", "--peers", bad])
+        assert words in capsys.readouterr().err
 
 
 def test_oga_coordinates_script_compares_loop_and_vmap():

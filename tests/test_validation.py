@@ -46,8 +46,26 @@ def test_simpson_substeps_not_even():
 @pytest.mark.parametrize("dt0", [0.0, float("nan")])
 def test_zero_or_nan_dt0(dt0):
     # An array, so both cases share one compilation (a Python float is static to the jit).
+    # The first step fails with its own result (no host callback in the program, so it can
+    # be cached); `throw=True` raises with its message.
+    sol = solve(dt0=jnp.asarray(dt0), throw=False, max_steps=8)
+    assert sol.result == diffrax.RESULTS.vi_step_size_invalid
+    assert dvi.failure_kind(sol.result) == "other"
+    assert bool(jnp.all(jnp.isnan(sol.ys[0])))
     with pytest.raises(Exception, match="step size must be finite and non-zero"):
-        solve(dt0=jnp.asarray(dt0), throw=False).ys[0].block_until_ready()
+        solve(dt0=jnp.asarray(dt0), max_steps=8).ys[0].block_until_ready()
+
+
+def test_solve_program_has_no_host_callback():
+    """A `throw=False` solve compiles to a program without host callbacks, which JAX's
+    persistent compilation cache needs (it skips programs with callbacks)."""
+    import jax
+
+    def run(y0):
+        return solve(y0=y0, throw=False).ys
+
+    text = jax.jit(run).lower(HO.y0).as_text()
+    assert "callback" not in text
 
 
 def test_negative_dt0():

@@ -90,7 +90,7 @@ def _energy_problems(chosen, full: bool, settings) -> list[str]:
 
 def run_energy(args) -> None:
     from .harness import Adaptive, long_time_energy
-    from .suites import SETTINGS, networkvi_entries, peer_entries
+    from .suites import SETTINGS, energy_entries, peer_entries
 
     _problems(args, SETTINGS)  # refuses unknown names
     names = _energy_problems(args.problems, args.full, SETTINGS)
@@ -98,14 +98,14 @@ def run_energy(args) -> None:
     rtols = (1e-8, 1e-10, 1e-12) if args.quick else (1e-6, 1e-8, 1e-10, 1e-12, 1e-14)
     peers = [e for e in peer_entries(False) if isinstance(e, Adaptive)
              and e.name in ("Tsit5", "Dopri8")]
-    bar = _progress(len(names) * (1 + len(peers) * len(rtols)), "energy", not args.no_progress)
+    bar = _progress(len(names) * (2 + len(peers) * len(rtols)), "energy", not args.no_progress)
     for name in names:
         setting = SETTINGS[name]
         n = args.long_steps.get(name, args.long_steps["default"])
         problem = setting.make()
         problem = problem.with_span(problem.t0 + n * setting.long_dt)
-        ours = networkvi_entries(setting, False)[0]
-        runs = [(ours, n)] + [(p, r) for p in peers for r in rtols]
+        runs = [(ours, n) for ours in energy_entries(setting)]
+        runs += [(p, r) for p in peers for r in rtols]
         long_time_energy(problem, runs, csv_path=path, progress=bar,
                          adaptive_max_steps=args.adaptive_max_steps)
     if bar is not None:

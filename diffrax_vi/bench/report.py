@@ -334,7 +334,8 @@ def equal_cost_markdown(rows: Sequence[dict], peers: Sequence[str] = ("Tsit5", "
     """`equal_cost` as markdown."""
     body = []
     for e in equal_cost(rows, peers):
-        cells = [e["problem"], f"{_fmt(e['steps'], 'd')} steps, T = {_fmt(e['horizon'], 'g')}",
+        cells = [e["problem"],
+                 f"{e['ours']}: {_fmt(e['steps'], 'd')} steps, T = {_fmt(e['horizon'], 'g')}",
                  f"{_fmt(e['ours_s'], '.3g')} s", f"{_fmt(e['ours_energy'])} ({e['ours_status']})"]
         for p in peers:
             c = e.get(p)

@@ -14,12 +14,14 @@ from .. import problems as _problems
 from ..activations import gelu, tanh
 from ..ansatz.shallow import ShallowNetBasis
 from ..methods import CGVI
+from ..nonlinear import LevenbergMarquardt
 from ..quadrature import GaussLegendre
 from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep
 from ..solver import NetworkVI
 from .harness import Adaptive, Entry, Fixed, SciPy
 
-__all__ = ["Setting", "SETTINGS", "PEERS_ADAPTIVE", "networkvi_entries", "peer_entries"]
+__all__ = ["Setting", "SETTINGS", "PEERS_ADAPTIVE", "networkvi_entries", "energy_entries",
+           "peer_entries"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,15 +78,26 @@ PEERS_ADAPTIVE = ("Tsit5", "Dopri8")
 
 
 def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
-    """NetworkVI variants: quick has one (tanh, warm start from the previous step); full adds
-    the reference's per-step seed (midpoint trajectory + OGA) and a GELU network."""
+    """NetworkVI variants. Quick has two tanh networks: `warm` (the defaults with a warm start
+    from the previous step's curve) and `fast` (the opt-in settings of the how-to "A faster
+    step": the previous step's neurons refitted as seed, the closed-form Jacobian, a solve
+    ended by the first exact iteration whose outputs settled). Full adds the reference's
+    per-step seed (extrapolated trajectory + OGA) and a GELU network."""
     basis = ShallowNetBasis(tanh, setting.width)
     quad = GaussLegendre(setting.nodes)
-    out = [Fixed(f"NetworkVI tanh{setting.width} R{setting.nodes} warm",
-                 NetworkVI(basis, quad, initial_trajectory=PreviousStep()), family="ours")]
+    label = f"tanh{setting.width} R{setting.nodes}"
+    out = [
+        Fixed(f"NetworkVI {label} warm",
+              NetworkVI(basis, quad, initial_trajectory=PreviousStep()), family="ours"),
+        Fixed(f"NetworkVI {label} fast",
+              NetworkVI(basis, quad, reuse_neurons=True,
+                        root_finder=LevenbergMarquardt(jacobian="auto", settle=0,
+                                                       otol=2.0**-39)),
+              family="ours"),
+    ]
     if full:
         out += [
-            Fixed(f"NetworkVI tanh{setting.width} R{setting.nodes} OGA",
+            Fixed(f"NetworkVI {label} OGA",
                   NetworkVI(basis, quad, initial_trajectory=IntegratorExtrapolation()),
                   family="ours"),
             Fixed(f"NetworkVI gelu{setting.width} R{setting.nodes} warm",
@@ -92,6 +105,24 @@ def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
                             initial_trajectory=PreviousStep()), family="ours"),
         ]
     return out
+
+
+def energy_entries(setting: Setting) -> list[Fixed]:
+    """NetworkVI in the long-time energy study: `warm` (as in the work-precision study) and
+    `long-run`, the how-to's setting for long runs: refitted neurons as seed, but only after
+    a step accepted at a residual of at most `2048·eps` (else the OGA), with the default
+    stopping rule and the closed-form Jacobian."""
+    basis = ShallowNetBasis(tanh, setting.width)
+    quad = GaussLegendre(setting.nodes)
+    label = f"tanh{setting.width} R{setting.nodes}"
+    eps = float(jnp.finfo(jnp.float64).eps)
+    return [
+        networkvi_entries(setting, False)[0],
+        Fixed(f"NetworkVI {label} long-run",
+              NetworkVI(basis, quad, reuse_neurons=True, refit_residual=2048 * eps,
+                        root_finder=LevenbergMarquardt(jacobian="auto")),
+              family="ours"),
+    ]
 
 
 def peer_entries(full: bool) -> list[Entry]:
