@@ -10,7 +10,7 @@ be taken at all:
 | `RESULTS.vi_step_stalled` | `"diverged"` | the residual stopped falling above the tolerance |
 | `RESULTS.vi_step_nonfinite` | `"nonfinite"` | NaN or inf in the residual or in the end state |
 | `RESULTS.vi_step_singular` | `"singular"` | the linear solve of an iteration broke down |
-| `RESULTS.vi_step_size_invalid` | `"other"` | the step's length is zero or not finite (`dt0`, `t0`, `t1`) |
+| `RESULTS.vi_step_size_invalid` | `"other"` | the step is zero or not finite (`dt0`, `t0`, `t1`) |
 
 `diffrax.diffeqsolve` only forwards members of its own `RESULTS`, and only checks results with
 `is_okay`, so the members are registered on `diffrax.RESULTS` itself when `diffrax_vi` is
