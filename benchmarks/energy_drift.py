@@ -21,9 +21,10 @@ only from roots accepted at a residual of at most `2048·eps`, `refit_residual`)
 seed with a shorter stopping rule (`settle1`, `settle2`: that many iterations without the
 residual halving before settled outputs end a solve, against 3 by default; `settle0_otol`: none,
 with the default output tolerance `64·eps`, where `settle0` uses `eps^(3/4)`), and
-`cgvi` (`CGVI(7)`, the polynomial baseline). Width 10 tanh network, Gauss–Legendre 8 nodes,
-float64. `--peers tsit5:1e-10 dopri8:1e-12` adds adaptive diffrax runs over the same span
-(PID controller, atol = rtol/100), their energy sampled at 1000 evenly spaced times.
+`cgvi` (`CGVI(7)`, the polynomial baseline). A tanh network of width `--width` (default 10)
+on `--nodes` Gauss–Legendre nodes (default 8), float64. `--peers tsit5:1e-10 dopri8:1e-12`
+adds adaptive diffrax runs over the same span (PID controller, atol = rtol/100), their energy
+sampled at 1000 evenly spaced times.
 
     PYTHONPATH=. .venv/bin/python benchmarks/energy_drift.py harmonic_oscillator 0.25 4000
     PYTHONPATH=. .venv/bin/python benchmarks/energy_drift.py henon_heiles 0.1 4000 \
@@ -185,17 +186,21 @@ def main(argv=None):
     parser.add_argument("--configs", nargs="+", default=["default", "oga2d", "fast", "cgvi"])
     parser.add_argument("--repeats", type=int, default=3,
                         help="timed runs after the first (compiling) one; median quoted")
+    parser.add_argument("--width", type=int, default=10, help="network width (default 10)")
+    parser.add_argument("--nodes", type=int, default=8,
+                        help="Gauss-Legendre nodes (default 8)")
     parser.add_argument("--peers", nargs="*", default=[],
                         help="adaptive diffrax peers over the same span, as NAME:RTOL "
                              "(NAME in tsit5, dopri8), e.g. dopri8:1e-12")
     ns = parser.parse_args(argv)
     peers = [_parse_peer(parser, text) for text in ns.peers]
     problem = getattr(problems, ns.problem)(dtype=jnp.float64)
-    print(f"{ns.problem}, {ns.steps} steps of h = {ns.h}, float64; relative energy error")
+    print(f"{ns.problem}, {ns.steps} steps of h = {ns.h}, float64, tanh width {ns.width}, "
+          f"Gauss-Legendre {ns.nodes}; relative energy error")
     for config in ns.configs:
         start = time.perf_counter()
         q, p, ok, residual, refits, steady, iterations = run_steps(
-            solver_for(config), problem, ns.h, ns.steps, ns.repeats)
+            solver_for(config, ns.width, ns.nodes), problem, ns.h, ns.steps, ns.repeats)
         first = time.perf_counter() - start - (steady * ns.repeats if ns.repeats else 0.0)
         done = int(np.argmin(ok)) if not ok.all() else ns.steps
         s = drift_summary(problem, q[:done], p[:done], residual[:done])
