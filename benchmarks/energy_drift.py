@@ -84,7 +84,8 @@ def run_steps(solver, problem, h: float, steps: int, repeats: int = 0):
     (zeros for solvers without a `report`), the number of steps seeded by a refit
     (`NetworkVIState.refits`; 0 for other solvers), the median wall time of `repeats`
     further runs of the compiled scan (NaN for none), and the median nonlinear iterations
-    per accepted step (from `NetworkVIState.histogram`; NaN for other solvers)."""
+    per step before the first failed one (from each step's `report`; NaN for solvers
+    without one)."""
     term, args = problem.term, problem.args
 
     @eqx.filter_jit
@@ -97,19 +98,23 @@ def run_steps(solver, problem, h: float, steps: int, repeats: int = 0):
             y1, _, _, state1, result = solver.step(term, t0, t0 + h, y, args, state, False)
             report = getattr(state1, "report", None)
             residual = jnp.zeros(()) if report is None else report.residual
-            return (y1, state1), (y1, result == diffrax.RESULTS.successful, residual)
+            iterations = jnp.zeros((), jnp.int32) if report is None else report.iterations
+            ok = result == diffrax.RESULTS.successful
+            return (y1, state1), (y1, ok, residual, iterations)
 
         (_, state), outs = jax.lax.scan(body, (y0, state), jnp.arange(steps))
-        histogram = getattr(state, "histogram", jnp.zeros(1, jnp.int32))
-        return outs, getattr(state, "refits", jnp.zeros((), jnp.int32)), histogram
+        return outs, getattr(state, "refits", jnp.zeros((), jnp.int32))
 
-    ((q, p), ok, residual), refits, histogram = scan(problem.y0)
-    histogram = np.asarray(histogram)
-    median_iterations = (float(np.searchsorted(np.cumsum(histogram), histogram.sum() / 2))
-                         if histogram.sum() else float("nan"))
+    ((q, p), ok, residual, iterations), refits = scan(problem.y0)
+    ok, iterations = np.asarray(ok), np.asarray(iterations)
+    # over the steps before the first failure (the steps after it start from NaN)
+    done = int(np.argmin(ok)) if not ok.all() else ok.size
+    median_iterations = (float(np.median(iterations[:done]))
+                         if done and getattr(solver, "root_finder", None) is not None
+                         else float("nan"))
     times = [timed(scan, problem.y0)[1] for _ in range(repeats)]
     steady = statistics.median(times) if times else float("nan")
-    return (np.asarray(q), np.asarray(p), np.asarray(ok), np.asarray(residual), int(refits),
+    return (np.asarray(q), np.asarray(p), ok, np.asarray(residual), int(refits),
             steady, median_iterations)
 
 
