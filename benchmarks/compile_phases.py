@@ -40,8 +40,8 @@ from speed import CONFIGS  # noqa: E402  (the configurations of benchmarks/speed
 NODES = {"harmonic_oscillator": 8, "double_pendulum": 16}
 
 
-def phases(problem_name: str, config: str, restart: bool = True, steps: int = 20, h=0.1):
-    """(trace + lower seconds, compile seconds, StableHLO characters) of one solve."""
+def fixture_solve(problem_name: str, config: str, restart: bool = True, steps: int = 20, h=0.1):
+    """The fixture's solve as a function of `y0` (not jitted), and the problem."""
     problem = getattr(problems, problem_name)(dtype=jnp.float64).with_span(n_steps=steps, dt=h)
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(dvi.tanh, 10),
@@ -56,6 +56,12 @@ def phases(problem_name: str, config: str, restart: bool = True, steps: int = 20
             saveat=diffrax.SaveAt(t1=True), max_steps=steps + 1, throw=False,
         )  # fmt: skip
 
+    return run, problem
+
+
+def phases(problem_name: str, config: str, restart: bool = True, steps: int = 20, h=0.1):
+    """(trace + lower seconds, compile seconds, StableHLO characters) of one solve."""
+    run, problem = fixture_solve(problem_name, config, restart, steps, h)
     start = time.perf_counter()
     lowered = jax.jit(run).lower(problem.y0)
     traced = time.perf_counter() - start
@@ -67,21 +73,9 @@ def phases(problem_name: str, config: str, restart: bool = True, steps: int = 20
 
 def first_call(problem_name: str, config: str, steps: int = 20, h=0.1) -> float:
     """Seconds of the first call of one solve (trace, compile or cache read, one run)."""
-    problem = getattr(problems, problem_name)(dtype=jnp.float64).with_span(n_steps=steps, dt=h)
-    solver = dvi.NetworkVI(
-        dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(NODES.get(problem_name, 8)),
-        **CONFIGS[config],
-    )
-
-    @jax.jit
-    def run(y0):
-        return diffrax.diffeqsolve(
-            problem.term, solver, problem.t0, problem.t1, h, y0, args=problem.args,
-            saveat=diffrax.SaveAt(t1=True), max_steps=steps + 1, throw=False,
-        )  # fmt: skip
-
+    run, problem = fixture_solve(problem_name, config, steps=steps, h=h)
     start = time.perf_counter()
-    jax.block_until_ready(run(problem.y0))
+    jax.block_until_ready(jax.jit(run)(problem.y0))
     return time.perf_counter() - start
 
 

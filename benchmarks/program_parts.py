@@ -22,15 +22,12 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import diffrax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 from jax.extend import core as jex_core  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
-from diffrax_vi import problems  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from compile_phases import NODES  # noqa: E402
+from compile_phases import NODES, fixture_solve  # noqa: E402
 from speed import CONFIGS  # noqa: E402
 
 PACKAGE = os.path.dirname(os.path.abspath(dvi.__file__))
@@ -74,19 +71,7 @@ def count_parts(jaxpr, counts: collections.Counter, depth: int = 0) -> None:
 
 def program_parts(problem_name: str, config: str, depth: int = 0, steps: int = 20, h=0.1):
     """Operation counts per owning function (see `_owner`) of one solve's jaxpr."""
-    problem = getattr(problems, problem_name)(dtype=jnp.float64).with_span(n_steps=steps, dt=h)
-    solver = dvi.NetworkVI(
-        dvi.ShallowNetBasis(dvi.tanh, 10),
-        dvi.GaussLegendre(NODES.get(problem_name, 8)),
-        **CONFIGS[config],
-    )
-
-    def run(y0):
-        return diffrax.diffeqsolve(
-            problem.term, solver, problem.t0, problem.t1, h, y0, args=problem.args,
-            saveat=diffrax.SaveAt(t1=True), max_steps=steps + 1, throw=False,
-        )  # fmt: skip
-
+    run, problem = fixture_solve(problem_name, config, steps=steps, h=h)
     counts: collections.Counter = collections.Counter()
     count_parts(jax.make_jaxpr(run)(problem.y0).jaxpr, counts, depth)
     return counts
