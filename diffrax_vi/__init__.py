@@ -60,6 +60,7 @@ from .seeding import (
     TrajectoryFit,
 )
 from .solver import NetworkVI, NetworkVIState
+from .step_size import RetryFailedSteps
 from .terms import IODETerm, LagrangianTerm
 
 __version__ = "0.1.0.dev0"
@@ -126,6 +127,7 @@ __all__ = [
     "RawProjection",
     "Refined",
     "RegularisedNewton",
+    "RetryFailedSteps",
     "ShallowNet",
     "ShallowNetBasis",
     "SharedMirrorPairs",

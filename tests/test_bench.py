@@ -332,6 +332,12 @@ def test_long_runs_script_reports_steps_restarts_and_energy(capsys):
     out = capsys.readouterr().out
     assert "ok True, steps done 5, restarts 0" in out
     assert "max relative energy error" in out
+    module.main(["harmonic_oscillator", "3.0", "4", "10", "8", "fwd", "--retry"])
+    out = capsys.readouterr().out
+    assert "ok True, steps done" in out and "failed trials retried in pieces" in out
+    assert "retried in pieces 0," not in out  # h = 3 fails at the first step without it
+    tenths = module.per_tenth(np.array([0.5, 1.0, 9.5]), np.array([1.0, 3.0, 2.0]), 0.0, 10.0)
+    assert tenths[0] == 3.0 and tenths[9] == 2.0 and np.isnan(tenths[5])
 
 
 def test_pendulum_constraint_script_measures_p2_and_projects_it():
