@@ -184,6 +184,23 @@ def test_work_precision_and_energy_smoke(tmp_path):
     assert os.path.getsize(tmp_path / "energy.png") > 1000
 
 
+def test_fixed_entries_may_retry_failed_steps():
+    """`Fixed(..., retry=True)` steps with RetryFailedSteps: the run that fails at h = 3 with
+    constant steps goes to the end, and the row counts the failed trials."""
+    ho = problems.harmonic_oscillator(dtype=jnp.float64, t1=24.0)
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8))
+    plain = Fixed("NetworkVI", solver, family="ours")
+    retry = Fixed("NetworkVI retry", solver, family="ours", retry=True)
+    assert retry.step_budget(8) > plain.step_budget(8) == 8
+    rows = work_precision(ho, [plain, retry], steps=[8], repeats=1)
+    by = {r["solver"]: r for r in rows}
+    assert by["NetworkVI"]["status"] == "diverged"
+    assert by["NetworkVI retry"]["status"] == "ok", by["NetworkVI retry"]
+    assert by["NetworkVI retry"]["rejected"] > 0
+    assert by["NetworkVI retry"]["steps"] == 8 + by["NetworkVI retry"]["rejected"]
+    assert by["NetworkVI retry"]["error"] < 1e-6
+
+
 @pytest.mark.slow
 def test_stability_sweep_smoke(tmp_path):
     # the reference's harmonic-oscillator setting; dt = 10 does not converge (one compilation)

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..problems import Problem
+from ..step_size import RetryFailedSteps
 from .status import classify
 
 __all__ = [
@@ -57,14 +58,22 @@ class Fixed:
       a problem that is not separable is skipped with status `error:NotSeparable`.
     - `family`: `"ours"` for the NetworkVI variants, `"peer"` for the others (the reports
       compare the best of each).
+    - `retry`: step with `RetryFailedSteps()` instead of `ConstantStepSize()`, so that a
+      failed step is taken again in pieces instead of ending the run (`steps` then counts
+      the pieces, `rejected` the failed trials).
     """
 
     name: str
     solver: diffrax.AbstractSolver
     separable: bool = False
     family: str = "peer"
+    retry: bool = False
     kind = "fixed"
     parameter = "steps"
+
+    def step_budget(self, steps: int) -> int:
+        """`max_steps` for a run of `steps` grid steps: room for retries where `retry`."""
+        return 2 * steps + 100 if self.retry else steps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -183,12 +192,13 @@ class _DiffraxRunner:
         args = problem.args
 
         if isinstance(entry, Fixed):
+            controller = RetryFailedSteps() if entry.retry else diffrax.ConstantStepSize()
 
             @eqx.filter_jit
             def solve(y0, t1, dt):
                 return diffrax.diffeqsolve(
                     term, solver, t0, t1, dt, y0, args=args, saveat=saveat,
-                    stepsize_controller=diffrax.ConstantStepSize(), max_steps=max_steps,
+                    stepsize_controller=controller, max_steps=max_steps,
                     throw=False,
                 )
 
@@ -375,7 +385,8 @@ def work_precision(
                                wall_s=wall, compile_s=0.0, repeats=n, nfev=res.nfev)
                 else:
                     max_steps = (
-                        int(max(sweep)) if isinstance(entry, Fixed) else adaptive_max_steps
+                        entry.step_budget(int(max(sweep))) if isinstance(entry, Fixed)
+                        else adaptive_max_steps
                     )
                     if runner is None:
                         runner = _DiffraxRunner(problem, entry, max_steps, saveat)
@@ -448,7 +459,7 @@ def long_time_energy(
                             compile_s=0.0)
             else:
                 fixed = isinstance(entry, Fixed)
-                max_steps = int(value) if fixed else adaptive_max_steps
+                max_steps = entry.step_budget(int(value)) if fixed else adaptive_max_steps
                 key = (id(entry), max_steps)
                 if key not in runners:  # tolerances are traced: one compilation per entry
                     runners[key] = _DiffraxRunner(problem, entry, max_steps, saveat)
