@@ -24,7 +24,9 @@ part of them. They are in the solver state instead: `SaveAt(..., solver_state=Tr
 `sol.solver_state.report` (a `StepReport`), or `describe_failure(sol)` for one readable line.
 With constant steps the report is that of the failed step; an adaptive controller rejects a
 failed step (its error estimate is infinite) and throws its state away, so the report is then
-that of the last accepted step.
+that of the last accepted step. `RetryFailedSteps` throws away the failed trials it retries,
+and keeps the one that ends the run (a piece of the smallest length that still fails), so
+its report is that of the failed piece.
 """
 
 from __future__ import annotations
@@ -47,11 +49,15 @@ _WHERE = (
 _MESSAGES = {
     "vi_step_max_iterations": (
         "diffrax_vi: the nonlinear solve of a step reached root_find_max_steps without "
-        "converging. Try a smaller step, a larger root_find_max_steps or a better seed." + _WHERE
+        "converging. Try a smaller step, a larger root_find_max_steps or a better seed, or "
+        "stepsize_controller=diffrax_vi.RetryFailedSteps() to retry such steps in pieces."
+        + _WHERE
     ),
     "vi_step_stalled": (
         "diffrax_vi: the nonlinear solve of a step stalled: its residual stopped falling "
-        "above the tolerance (no root near the seed). Try a smaller step or another seed." + _WHERE
+        "above the tolerance (no root near the seed). Try a smaller step or another seed, or "
+        "stepsize_controller=diffrax_vi.RetryFailedSteps() to retry such steps in pieces."
+        + _WHERE
     ),
     "vi_step_nonfinite": (
         "diffrax_vi: a step produced NaN or inf (in the residual of its nonlinear solve or "
