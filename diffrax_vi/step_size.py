@@ -65,6 +65,13 @@ class RetryFailedSteps(diffrax.AbstractStepSizeController):
 
     Pass `dt0` to `diffeqsolve` as for `ConstantStepSize`, and a `max_steps` that leaves
     room for the retries (each failed trial and each piece counts as a step).
+
+    Gradients pass through a run with retries (the choice of pieces is not differentiated,
+    as with any step-size controller). A failed `NetworkVI` trial adds nothing to them: its
+    NaN end state is a constant. A vector field that itself produces the NaN (a square root
+    of a negative number, say) must make it a constant branch of a `jnp.where`, with the
+    other branch fed only valid inputs, as anywhere in JAX; otherwise the rejected trial's
+    NaN derivative reaches the gradient.
     """
 
     shrink: float = 0.5
