@@ -367,11 +367,13 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         )
         return new_y, new_state, aux
 
-    def _restartable(self, args, options, state) -> Array:
-        """Whether the solve has failed and may restart from the caller's fallback."""
+    def _restartable(self, args, options, state, result=None) -> Array:
+        """Whether the solve has failed and may restart from the caller's fallback (`result`:
+        the outcome's result, where the caller has it already)."""
         if options.get("fallback") is None:
             return jnp.array(False)
-        _, result = self._outcome(options, state)
+        if result is None:
+            _, result = self._outcome(options, state)
         usable = options.get("fallback_usable")
         usable = jnp.array(True) if usable is None else usable(args)
         return (result != optx.RESULTS.successful) & ~state.from_fallback & usable
@@ -403,7 +405,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         done, result = self._outcome(options, state)
         # Not done, and no failure yet, while a start at, or a restart from, the caller's
         # fallback is due (optimistix's loop stops at the first non-successful result).
-        due = state.pending | self._restartable(args, options, state)
+        due = state.pending | self._restartable(args, options, state, result)
         return done & ~due, optx.RESULTS.where(due, optx.RESULTS.successful, result)
 
     def _outcome(self, options, state):
