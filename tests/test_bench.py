@@ -283,6 +283,19 @@ def test_harness_refuses_bad_input():
         long_time_energy(problem, [(tsit5, 1e-6)], samples=1)
 
 
+def test_energy_retry_flag_reaches_the_networkvi_entries_and_the_workers():
+    from diffrax_vi.bench.__main__ import _our_energy_entries, _worker_argv
+    from diffrax_vi.bench.suites import SETTINGS
+
+    setting = SETTINGS["double_pendulum"]
+    plain = _our_energy_entries(setting, False)
+    retry = _our_energy_entries(setting, True)
+    assert not any(e.retry for e in plain)
+    assert all(e.retry and e.name == f"{p.name} retry" for e, p in zip(retry, plain, strict=True))
+    argv = ["energy", "--retry", "--jobs", "2", "--out", "x"]
+    assert "--retry" in _worker_argv(argv)
+
+
 def test_energy_problem_selection_is_shared_by_serial_and_parallel_runs():
     """Quick energy runs skip problems whose setting says so (the Toda lattice); --full and
     an explicit --problems list run them; the parallel runner asks the same function."""

@@ -17,6 +17,7 @@ keeps its partial results. float64 is switched on here (the library itself never
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import sys
@@ -88,9 +89,20 @@ def _energy_problems(chosen, full: bool, settings) -> list[str]:
     return [n for n, s in settings.items() if s.quick_energy]
 
 
+def _our_energy_entries(setting, retry: bool) -> list:
+    """NetworkVI's entries of the energy study; with `retry` they step with
+    `RetryFailedSteps` and carry " retry" in their names."""
+    from .suites import energy_entries
+
+    ours = energy_entries(setting)
+    if retry:
+        ours = [dataclasses.replace(e, name=f"{e.name} retry", retry=True) for e in ours]
+    return ours
+
+
 def run_energy(args) -> None:
     from .harness import Adaptive, long_time_energy
-    from .suites import SETTINGS, energy_entries, peer_entries
+    from .suites import SETTINGS, peer_entries
 
     _problems(args, SETTINGS)  # refuses unknown names
     names = _energy_problems(args.problems, args.full, SETTINGS)
@@ -104,7 +116,7 @@ def run_energy(args) -> None:
         n = args.long_steps.get(name, args.long_steps["default"])
         problem = setting.make()
         problem = problem.with_span(problem.t0 + n * setting.long_dt)
-        runs = [(ours, n) for ours in energy_entries(setting)]
+        runs = [(e, n) for e in _our_energy_entries(setting, args.retry)]
         runs += [(p, r) for p in peers for r in rtols]
         long_time_energy(problem, runs, csv_path=path, progress=bar,
                          adaptive_max_steps=args.adaptive_max_steps)
@@ -308,6 +320,9 @@ def main(argv=None) -> None:
                         help="NetworkVI steps of the energy runs: N or name=N,... "
                              "(default: 1e4 with --quick, 1e5 with --full)")
     parser.add_argument("--adaptive-max-steps", type=int, default=2**19)
+    parser.add_argument("--retry", action="store_true",
+                        help="energy: NetworkVI steps with RetryFailedSteps (a failed step "
+                             "is taken again in pieces instead of ending the run)")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--jobs", type=int, default=1,
                         help="run the studies as this many parallel processes, one per "
