@@ -183,8 +183,7 @@ def test_a_missing_step_is_named():
 
 def test_gradients_flow_through_a_run_with_retries():
     """Reverse mode through a solve whose failed steps were split matches central
-    differences: Tsit5 on the guarded y' = -sqrt(y), and NetworkVI on the oscillator at
-    h = 3 (the failed trials' NaN end states are constants, so they add nothing)."""
+    differences (Tsit5 on the guarded y' = -sqrt(y): a rejected trial adds only zeros)."""
 
     def tsit5_final(y0):
         return _sqrt_decay(diffrax.Tsit5(), dvi.RetryFailedSteps(), 1.9, 0.475, y0=y0).ys[0]
@@ -193,6 +192,12 @@ def test_gradients_flow_through_a_run_with_retries():
     central = (tsit5_final(y0 + step) - tsit5_final(y0 - step)) / (2 * step)
     np.testing.assert_allclose(float(jax.grad(tsit5_final)(y0)), float(central), rtol=1e-6)
 
+
+@pytest.mark.long
+def test_gradients_through_networkvi_with_retried_steps():
+    """NetworkVI on the oscillator at h = 3 with retried steps: reverse mode against central
+    differences (the failed trials' NaN end states are constants, so they add nothing).
+    About a minute of compilation, so it runs in `make test-long`."""
     problem = problems.harmonic_oscillator(dtype=jnp.float64)
 
     @eqx.filter_jit
