@@ -1,9 +1,9 @@
 """A fixed step that is split where it fails: `RetryFailedSteps`.
 
 A long run with fixed steps ends at its first failed step (`diffrax.ConstantStepSize` has no
-way to retry one). An adaptive controller retries, but it also changes every other step, which
-a variational integrator should not do: the bounded energy error rests on applying the same
-map on every step. `RetryFailedSteps` keeps the grid `t0 + k·dt0` of `ConstantStepSize` and
+way to retry one). An adaptive controller retries, but it also changes the length of the
+steps that did not fail, which a variational integrator should not do: the bounded energy
+error rests on applying the same map on every step. `RetryFailedSteps` keeps the grid `t0 + k·dt0` of `ConstantStepSize` and
 only splits the interval of a failed step into smaller pieces until they succeed; the next
 interval is again a full step. A run without failures takes exactly the steps (and gives
 exactly the numbers) of `ConstantStepSize`.
