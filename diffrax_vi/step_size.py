@@ -5,8 +5,8 @@ way to retry one). An adaptive controller retries, but it also changes the lengt
 steps that did not fail, which a variational integrator should not do: the bounded energy
 error rests on applying the same map on every step. `RetryFailedSteps` keeps the grid
 `t0 + k·dt0` of `ConstantStepSize` and only splits the interval of a failed step into smaller
-pieces until they succeed; the next interval is again a full step. A run without failures takes exactly the steps (and gives
-exactly the numbers) of `ConstantStepSize`.
+pieces until they succeed; the next interval is again a full step. A run without failures
+takes exactly the steps (and gives exactly the numbers) of `ConstantStepSize`.
 
 A step counts as failed when its end state, or its error estimate where the solver gives one,
 is not finite. `NetworkVI` and `CGVI` return a NaN end state on every failed step; diffrax's
