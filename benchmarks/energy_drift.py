@@ -182,21 +182,50 @@ def _parse_peer(parser, text: str) -> tuple[str, float]:
     return name, value
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__,
+PROBLEM_NAMES = sorted(n for n in problems.__all__ if n[0].islower())
+
+
+def _positive(kind):
+    def convert(text):
+        value = kind(text)
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        return value
+
+    return convert
+
+
+def span_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments this script shares with `long_runs.py`: the problem, the step, the
+    number of steps (checked), and `--peers`."""
+    parser = argparse.ArgumentParser(description=doc,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("problem")
-    parser.add_argument("h", type=float)
-    parser.add_argument("steps", type=int)
+    parser.add_argument("problem", choices=PROBLEM_NAMES)
+    parser.add_argument("h", type=_positive(float))
+    parser.add_argument("steps", type=_positive(int))
+    parser.add_argument("--peers", nargs="*", default=[],
+                        help="adaptive diffrax peers over the same span, as NAME:RTOL "
+                             "(NAME in tsit5, dopri8), e.g. dopri8:1e-12")
+    return parser
+
+
+def report_peers(peers, problem, h: float, steps: int, prefix: str = "\n") -> None:
+    """Run and print each `--peers` entry over the span of `steps` steps of `h`."""
+    for name, rtol in peers:
+        largest, accepted, seconds, ok = peer_run(name, rtol, problem, h, steps)
+        status = "reached the end" if ok else "did not reach the end"
+        print(f"{prefix}{name} rtol {rtol}: {status}, {accepted} steps in {seconds:.2f} s "
+              f"(after compiling); largest energy error at 1000 sampled times {largest:.1e}")
+
+
+def main(argv=None):
+    parser = span_parser(__doc__)
     parser.add_argument("--configs", nargs="+", default=["default", "oga2d", "fast", "cgvi"])
     parser.add_argument("--repeats", type=int, default=3,
                         help="timed runs after the first (compiling) one; median quoted")
     parser.add_argument("--width", type=int, default=10, help="network width (default 10)")
     parser.add_argument("--nodes", type=int, default=8,
                         help="Gauss-Legendre nodes (default 8)")
-    parser.add_argument("--peers", nargs="*", default=[],
-                        help="adaptive diffrax peers over the same span, as NAME:RTOL "
-                             "(NAME in tsit5, dopri8), e.g. dopri8:1e-12")
     ns = parser.parse_args(argv)
     peers = [_parse_peer(parser, text) for text in ns.peers]
     problem = getattr(problems, ns.problem)(dtype=jnp.float64)
@@ -220,11 +249,7 @@ def main(argv=None):
         median, p99, largest = s["residual"]
         print(f"  accepted residual median {median:.1e}, p99 {p99:.1e}, max {largest:.1e}; "
               f"log correlation {s['corr']:.2f}")
-    for name, rtol in peers:
-        largest, accepted, seconds, ok = peer_run(name, rtol, problem, ns.h, ns.steps)
-        status = "reached the end" if ok else "did not reach the end"
-        print(f"\n{name} rtol {rtol}: {status}, {accepted} steps in {seconds:.2f} s "
-              f"(after compiling); largest energy error at 1000 sampled times {largest:.1e}")
+    report_peers(peers, problem, ns.h, ns.steps)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ study's long-run settings). `--retry` steps with `diffrax_vi.RetryFailedSteps()`
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -38,7 +37,7 @@ import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
-from energy_drift import _parse_peer, peer_run  # noqa: E402
+from energy_drift import _parse_peer, report_peers, span_parser  # noqa: E402
 
 EPS = float(jnp.finfo(jnp.float64).eps)
 FAST = dict(reuse_neurons=True,
@@ -60,11 +59,7 @@ def per_tenth(ts: np.ndarray, error: np.ndarray, t0: float, t1: float) -> list[f
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("problem")
-    parser.add_argument("h", type=float)
-    parser.add_argument("steps", type=int)
+    parser = span_parser(__doc__)
     parser.add_argument("width", type=int)
     parser.add_argument("nodes", type=int)
     parser.add_argument("config", choices=sorted(CONFIGS))
@@ -72,8 +67,6 @@ def main(argv=None):
     parser.add_argument("--no-restart", action="store_true", help="restart_failed=False")
     parser.add_argument("--retry", action="store_true",
                         help="step with RetryFailedSteps() instead of ConstantStepSize()")
-    parser.add_argument("--peers", nargs="*", default=[],
-                        help="adaptive diffrax peers over the same span, as NAME:RTOL")
     ns = parser.parse_args(argv)
     peers = [_parse_peer(parser, text) for text in ns.peers]
     problem = getattr(problems, ns.problem)(dtype=jnp.float64)
@@ -127,11 +120,7 @@ def main(argv=None):
           + " ".join(f"{w:.1e}" for w in tenths))
     if not ok:
         print(dvi.describe_failure(sol))
-    for name, rtol in peers:
-        largest, accepted, seconds, reached = peer_run(name, rtol, problem, h, n)
-        status = "reached the end" if reached else "did not reach the end"
-        print(f"{name} rtol {rtol}: {status}, {accepted} steps in {seconds:.2f} s (after "
-              f"compiling); largest energy error at 1000 sampled times {largest:.1e}")
+    report_peers(peers, problem, h, n, prefix="")
 
 
 if __name__ == "__main__":

@@ -217,3 +217,18 @@ def test_gradients_through_networkvi_with_retried_steps():
     central = (network_final(q0 + step)[0] - network_final(q0 - step)[0]) / (2 * step)
     # the root finds stop at their residual floor, which limits the central difference
     np.testing.assert_allclose(np.asarray(grad)[0], float(central), rtol=1e-3)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
+def test_reduced_precision_times_and_states_keep_their_dtype(dtype):
+    term = diffrax.ODETerm(
+        lambda t, y, args: jnp.where(y > 0, -jnp.sqrt(jnp.where(y > 0, y, 1.0)), jnp.nan)
+    )
+    sol = diffrax.diffeqsolve(
+        term, diffrax.Tsit5(), dtype(0.0), dtype(1.9), dtype(0.475), jnp.asarray(1.0, dtype),
+        stepsize_controller=dvi.RetryFailedSteps(), saveat=diffrax.SaveAt(steps=True),
+        throw=False, max_steps=64,
+    )
+    assert sol.result == diffrax.RESULTS.successful
+    assert int(sol.stats["num_rejected_steps"]) > 0
+    assert sol.ts.dtype == dtype and sol.ys.dtype == dtype
