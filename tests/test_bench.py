@@ -15,7 +15,6 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.bench import (
-    STATUSES,
     Adaptive,
     Fixed,
     SciPy,
@@ -216,16 +215,18 @@ def test_stability_sweep_smoke(tmp_path):
     rows = [r for r in rows if r["lam"] != 1e6]
     (base_row,) = [r for r in rows if r["dt"] == 0.1]
     assert crawl_row["iterations"] > 2 * base_row["iterations"]  # measured 23 against 10
-    # the reference's accounting returns the stalled dt = 10 solve as converged (same
-    # compilation, the test is a traced flag)
+    # the reference's accounting never fails a stalled solve (same compilation, the test is
+    # a traced flag): its dt = 10 steps either stall and pass as converged, or crawl on to
+    # the iteration cap; which of the two happens moves with rounding (both were measured)
     (lax_row,) = [r for r in rows if r["acceptance"] == "reference"]
-    assert lax_row["status"] == "ok" and lax_row["steps_done"] == 10
+    assert lax_row["status"] in ("ok", "maxiter")
+    assert lax_row["status"] == "maxiter" or lax_row["steps_done"] == 10
     rows = [r for r in rows if r["acceptance"] == "strict"]
     by = {r["dt"]: r for r in rows}
     ok = by[0.1]
     assert ok["status"] == "ok", ok
     assert ok["ref_err"] < 1e-10 and ok["ham_drift"] < 1e-10 and ok["steps_done"] == 10
-    assert by[10.0]["status"] in STATUSES and by[10.0]["status"] != "ok"
+    assert by[10.0]["status"] == "diverged"  # the same stall fails our test
     assert by[10.0]["steps_done"] < 10 and by[10.0].get("ref_err") is None
     assert [r["status"] for r in read_rows(path)
             if r["acceptance"] == "strict" and float(r["lam"]) != 1e6] == [
@@ -368,6 +369,28 @@ def test_long_runs_script_reports_steps_restarts_and_energy(capsys):
     assert "retried in pieces 0," not in out  # h = 3 fails at the first step without it
     tenths = module.per_tenth(np.array([0.5, 1.0, 9.5]), np.array([1.0, 3.0, 2.0]), 0.0, 10.0)
     assert tenths[0] == 3.0 and tenths[9] == 2.0 and np.isnan(tenths[5])
+
+
+def test_root_existence_script_reports_each_seed(capsys):
+    """benchmarks/root_existence.py: one row per seed and step length; a short oscillator
+    step converges and is accurate, a failed one reports the stalled iterate's error."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "root_existence.py")
+    spec = importlib.util.spec_from_file_location("root_existence", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(["harmonic_oscillator", "tanh", "10", "8", "--dts", "0.1", "10",
+                 "--seeds", "OGA1d (default)"])
+    out = capsys.readouterr().out
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in out.splitlines()
+            if line.startswith("| 0.1 |") or line.startswith("| 10 |")]
+    (short, long) = rows
+    assert short[2] == "True" and float(short[4]) < 1e-12 and float(short[5]) < 1e-12
+    # dt = 10 stalls far from a root (measured residual 0.31), yet ends near the motion
+    assert long[2] == "False" and float(long[4]) > 1e-3 and np.isfinite(float(long[5]))
+    with pytest.raises(SystemExit):
+        module.main(["harmonic_oscillator", "tanh", "10", "8", "--dts", "0"])
 
 
 def test_pendulum_constraint_script_measures_p2_and_projects_it():
