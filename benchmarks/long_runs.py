@@ -35,6 +35,7 @@ import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
+from diffrax_vi.bench.harness import retry_step_budget  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
 from energy_drift import _parse_peer, report_peers, span_parser  # noqa: E402
@@ -81,8 +82,7 @@ def main(argv=None):
     t1 = problem.t0 + n * h
     ts = jnp.linspace(problem.t0, t1, 1001)
     controller = dvi.RetryFailedSteps() if ns.retry else diffrax.ConstantStepSize()
-    # Room for the retries: every failed trial and every piece is a step.
-    max_steps = 2 * n + 100 if ns.retry else n + 10
+    max_steps = retry_step_budget(n) if ns.retry else n + 10
 
     @eqx.filter_jit
     def run(y0):

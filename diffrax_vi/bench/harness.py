@@ -73,7 +73,13 @@ class Fixed:
 
     def step_budget(self, steps: int) -> int:
         """`max_steps` for a run of `steps` grid steps: room for retries where `retry`."""
-        return 2 * steps + 100 if self.retry else steps
+        return retry_step_budget(steps) if self.retry else steps
+
+
+def retry_step_budget(steps: int) -> int:
+    """`max_steps` for `steps` grid steps under `RetryFailedSteps`: every failed trial and
+    every piece of a retried interval is a step of its own."""
+    return 2 * steps + 100
 
 
 @dataclasses.dataclass(frozen=True)
