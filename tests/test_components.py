@@ -813,6 +813,28 @@ def test_damped_least_squares_solves_the_regularised_problem(dtype):
                                atol=tol * np.max(np.abs(expected)))
 
 
+@pytest.mark.parametrize("rows", [30, 12, 5, 2])
+def test_damped_least_squares_takes_any_shape_and_several_right_hand_sides(rows):
+    """Tall, square and wide matrices (the seed fits are tall, the Newton steps square), and a
+    matrix of right-hand sides solved column by column, as the seed fits pass them (the
+    right-hand sides ride along as columns of the factorised matrix)."""
+    from diffrax_vi.linalg import damped_least_squares
+
+    rng = np.random.default_rng(4)
+    jac = rng.standard_normal((rows, 12))
+    rhs = rng.standard_normal((rows, 3))
+    mu = 0.3
+    normal = jac.T @ jac + mu * np.eye(12)
+    expected = np.linalg.solve(normal, jac.T @ rhs)
+    d = damped_least_squares(jnp.asarray(jac), jnp.asarray(rhs), jnp.sqrt(mu))
+    assert d.shape == (12, 3)
+    np.testing.assert_allclose(np.asarray(d), expected, rtol=0, atol=1e-12)
+    for j in range(3):
+        one = damped_least_squares(jnp.asarray(jac), jnp.asarray(rhs[:, j]), jnp.sqrt(mu))
+        assert one.shape == (12,)
+        np.testing.assert_allclose(np.asarray(one), expected[:, j], rtol=0, atol=1e-12)
+
+
 # -- closed-form network derivatives (`ShallowNetBasis.jet`) ----------------------------------
 @pytest.mark.parametrize(
     "activation", [dvi.tanh, dvi.gelu, dvi.sin, dvi.sigmoid, dvi.relu_k(3)],
