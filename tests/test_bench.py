@@ -434,6 +434,7 @@ def test_iteration_summary_reads_the_solver_counters():
     assert out == 2.0 and seconds >= 0
 
 
+@pytest.mark.long  # 40 s of compiling; a benchmark script, kept out of CI's time budget
 def test_compile_phases_script_splits_the_first_call():
     """benchmarks/compile_phases.py on the smallest fixture: both phases timed, the program
     sized."""
