@@ -28,9 +28,10 @@ def damped_least_squares(matrix: Array, rhs: Array, sqrt_mu: Array) -> Array:
     """`argmin_d ‖matrix·d − rhs‖² + μ‖d‖²`, by QR of `[matrix; √μ I]` (no normal equations).
 
     The right-hand side rides along as an extra column of the factorised matrix, so the
-    factorisation's triangle already holds `Qᵀ·rhs` and `Q` is never formed: half the cost
-    of a QR that returns `Q` (800 × 400, the Toda lattice's Levenberg–Marquardt step:
-    18 ms against 37 ms on two cores), the same result up to rounding.
+    factorisation's triangle already holds `Qᵀ·rhs` and `Q` is never formed: about half the
+    work of a QR that returns `Q`, the same result up to rounding (a Toda-lattice step with
+    the fast settings: 89 ms against 206 ms, `benchmarks/long_runs.py toda_lattice 0.1 20 8
+    16 fast --again`).
     """
     dtype = jnp.result_type(rhs)
     work = _work_dtype(dtype)
