@@ -351,18 +351,41 @@ def test_full_grid_sample_draws_whole_compilation_groups():
     assert [g[0][0] for g in again.values()] == [g[0][0] for g in strata.values()]
 
 
-def test_long_runs_script_reports_steps_restarts_and_energy(capsys):
-    """benchmarks/long_runs.py: a tiny oscillator run, with and without the restart switch."""
+def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys):
+    """benchmarks/long_runs.py: a tiny oscillator run, with and without the restart switch,
+    in one solve and in chunks resumed from a checkpoint."""
     import importlib.util
 
     path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "long_runs.py")
     spec = importlib.util.spec_from_file_location("long_runs", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main(["harmonic_oscillator", "0.1", "5", "6", "6", "fast", "--no-restart"])
+    run = ["harmonic_oscillator", "0.1", "5", "6", "6", "fast", "--no-restart"]
+    module.main(run)
+    whole = capsys.readouterr().out
+    assert "ok True, steps done 5, restarts 0" in whole
+    assert "max relative energy error" in whole
+    # --chunks: a run stopped after two chunks and carried on from its checkpoint prints the
+    # same energy figures as the one solve
+    checkpoint = str(tmp_path / "run.npz")
+    module.main(run + ["--chunks", "5", "--checkpoint", checkpoint, "--chunks-now", "2"])
     out = capsys.readouterr().out
+    assert "chunk 2/5" in out and "chunk 3/5" not in out
+    assert "stopped after 2 of 5 chunks" in out and "steps done 2," in out
+    module.main(run + ["--chunks", "5", "--checkpoint", checkpoint])
+    out = capsys.readouterr().out
+    assert "2 of 5 chunks done" in out and "chunk 3/5" in out and "chunk 5/5" in out
     assert "ok True, steps done 5, restarts 0" in out
-    assert "max relative energy error" in out
+    lines = [[line.split("error")[-1] for line in text.splitlines() if "energy error" in line]
+             for text in (out, whole)]
+    assert lines[0] == lines[1] and len(lines[0]) == 2
+    with pytest.raises(SystemExit, match="different run"):
+        module.main(["harmonic_oscillator", "0.2", "5", "6", "6", "fast", "--no-restart",
+                     "--chunks", "5", "--checkpoint", checkpoint])
+    for bad in (["--chunks", "3"], ["--checkpoint", checkpoint], ["--chunks", "5", "--again"],
+                ["--chunks", "5", "--chunks-now", "1"]):
+        with pytest.raises(SystemExit):
+            module.main(run + bad)
     module.main(["harmonic_oscillator", "3.0", "4", "10", "8", "fwd", "--retry"])
     out = capsys.readouterr().out
     assert "ok True, steps done" in out and "failed trials retried in pieces" in out
