@@ -21,7 +21,8 @@ study's long-run settings). `--retry` steps with `diffrax_vi.RetryFailedSteps()`
 state and solver state (`diffeqsolve(..., solver_state=...)`), so the run is the same
 sequence of steps as one solve; it prints a progress line per chunk. With `--checkpoint
 FILE` the state after every chunk is written to FILE (`.npz`) and a later call with the same
-arguments carries on from there: a run of hours survives an interruption.
+arguments carries on from there: a run of hours survives an interruption. `--chunks-now M`
+runs at most M chunks in this call (0: only report what the checkpoint holds).
 
     PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py toda_lattice 0.1 100000 8 16 fast \
         --chunks 20 --checkpoint benchmarks/results/long_runs/toda_1e5.npz \
@@ -154,8 +155,9 @@ def chunked_run(problem, solver, controller, h: float, n: int, chunks: int, retr
     if done < chunks and ok:
         print(f"stopped after {done} of {chunks} chunks; the same command carries on",
               flush=True)
-    print(f"{done} chunks in {total:.0f} s, median chunk {np.median(seconds):.1f} s (each "
-          f"call's first chunk includes compiling)", flush=True)
+    if seconds:
+        print(f"{done} chunks in {total:.0f} s, median chunk {np.median(seconds):.1f} s "
+              f"(each call's first chunk includes compiling)", flush=True)
     return ts, ys, ok, states[0], total, rejected
 
 
@@ -175,7 +177,8 @@ def main(argv=None):
                         help="run the span as this many consecutive solves (a divisor of "
                              "both the number of steps and 1000)")
     parser.add_argument("--chunks-now", type=int, default=None,
-                        help="with --checkpoint: run at most this many chunks in this call")
+                        help="with --checkpoint: run at most this many chunks in this call "
+                             "(0: report what the checkpoint holds)")
     parser.add_argument("--checkpoint", default=None,
                         help="with --chunks: .npz file to save to after every chunk and to "
                              "resume from")
@@ -188,8 +191,8 @@ def main(argv=None):
                      f"({ns.steps}) and the 1000 saved intervals")
     if ns.checkpoint is not None and ns.chunks is None:
         parser.error("--checkpoint needs --chunks")
-    if ns.chunks_now is not None and (ns.checkpoint is None or ns.chunks_now < 1):
-        parser.error("--chunks-now needs --checkpoint and a positive count")
+    if ns.chunks_now is not None and (ns.checkpoint is None or ns.chunks_now < 0):
+        parser.error("--chunks-now needs --checkpoint and a count >= 0")
     if ns.again and ns.chunks is not None:
         parser.error("--again times one solve; it does not combine with --chunks")
     problem = getattr(problems, ns.problem)(dtype=jnp.float64)

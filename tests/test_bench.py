@@ -379,11 +379,17 @@ def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys):
     lines = [[line.split("error")[-1] for line in text.splitlines() if "energy error" in line]
              for text in (out, whole)]
     assert lines[0] == lines[1] and len(lines[0]) == 2
+    module.main(run + ["--chunks", "5", "--checkpoint", checkpoint, "--chunks-now", "0"])
+    out = capsys.readouterr().out  # reports the checkpoint without running a chunk
+    assert "5 of 5 chunks done" in out and "chunk 1/5" not in out
+    assert [line.split("error")[-1] for line in out.splitlines() if "energy error" in line] \
+        == lines[1]
     with pytest.raises(SystemExit, match="different run"):
         module.main(["harmonic_oscillator", "0.2", "5", "6", "6", "fast", "--no-restart",
                      "--chunks", "5", "--checkpoint", checkpoint])
     for bad in (["--chunks", "3"], ["--checkpoint", checkpoint], ["--chunks", "5", "--again"],
-                ["--chunks", "5", "--chunks-now", "1"]):
+                ["--chunks", "5", "--chunks-now", "1"],
+                ["--chunks", "5", "--checkpoint", checkpoint, "--chunks-now", "-1"]):
         with pytest.raises(SystemExit):
             module.main(run + bad)
     module.main(["harmonic_oscillator", "3.0", "4", "10", "8", "fwd", "--retry"])
