@@ -400,6 +400,23 @@ def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys):
     assert tenths[0] == 3.0 and tenths[9] == 2.0 and np.isnan(tenths[5])
 
 
+def test_seed_substeps_script_prints_a_row_per_rule_and_substep_count(capsys):
+    """benchmarks/seed_substeps.py: a tiny oscillator run converges and reports iterations."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "seed_substeps.py")
+    spec = importlib.util.spec_from_file_location("seed_substeps", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(["--problems", "harmonic_oscillator", "--rules", "early stop", "--substeps",
+                 "10", "--steps", "3", "--repeats", "1"])
+    rows = [[c.strip() for c in line.split("|")[1:-1]]
+            for line in capsys.readouterr().out.splitlines() if "harmonic_oscillator" in line]
+    ((fixture, rule, substeps, ok, median, mean, error, ms),) = rows
+    assert fixture.endswith("3 steps") and rule == "early stop" and substeps == "10"
+    assert ok == "True" and 1 <= int(median) <= 10 and float(error) < 1e-8 and float(ms) > 0
+
+
 def test_root_existence_script_reports_each_seed(capsys):
     """benchmarks/root_existence.py: one row per seed and step length; a short oscillator
     step converges and is accurate, a failed one reports the stalled iterate's error."""
