@@ -427,7 +427,7 @@ def test_root_existence_script_reports_each_seed(capsys):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     module.main(["harmonic_oscillator", "tanh", "10", "8", "--dts", "0.1", "10",
-                 "--seeds", "OGA1d (default)"])
+                 "--seeds", "OGA1d (10 sub-steps)"])
     out = capsys.readouterr().out
     rows = [[c.strip() for c in line.split("|")[1:-1]] for line in out.splitlines()
             if line.startswith("| 0.1 |") or line.startswith("| 10 |")]

@@ -43,6 +43,13 @@ def test_simpson_substeps_not_even():
                        extrapolation_substep=5)  # fmt: skip
 
 
+def test_hermite_first_strategy_on_another_label_grid():
+    with pytest.raises(ValueError, match="same label grid"):
+        dvi.HermiteExtrapolation(first=dvi.IntegratorExtrapolation())  # 10 against 20
+    traj = dvi.HermiteExtrapolation(20, first=dvi.IntegratorExtrapolation())
+    assert traj.first.substeps == 20 and dvi.HermiteExtrapolation().substeps == 10
+
+
 @pytest.mark.parametrize("dt0", [0.0, float("nan")])
 def test_zero_or_nan_dt0(dt0):
     # An array, so both cases share one compilation (a Python float is static to the jit).

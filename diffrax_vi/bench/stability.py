@@ -63,7 +63,8 @@ ACTIVATIONS = {
     "relu4": relu_k(4),
 }
 INITIAL_GUESSES = {
-    "midpoint": IntegratorExtrapolation,
+    # the reference's grid, so its sub-step count too (our default is 20)
+    "midpoint": lambda: IntegratorExtrapolation(substeps=10),
     "hermite": HermiteExtrapolation,
     "previous": NoExtrapolation,
 }
