@@ -40,8 +40,8 @@ import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi.bench.stability import ACTIVATIONS, PROBLEMS  # noqa: E402
 
 MAX_ITERATIONS = 1000
-# The stability sweep's labels: the reference's 10 midpoint sub-steps (the package's default
-# is 20), except in the last seed.
+# The stability sweep's labels: the reference's 10 midpoint sub-steps (explicit, whatever the
+# package's default), except in the last seed.
 TEN = dvi.IntegratorExtrapolation(substeps=10)
 SEEDS = {
     "OGA1d (10 sub-steps)": dict(initial_trajectory=TEN),

@@ -2,11 +2,12 @@
 
 The default seed fits the network to positions from the variational midpoint rule over the
 step, in `IntegratorExtrapolation(substeps=N)` sub-steps (N = 10 by default, the reference's).
-More sub-steps give more accurate labels, a seed nearer the root and fewer Levenberg–Marquardt
-iterations, but the labels and the fit on N + 1 points cost more. This script measures that
-trade for each N under three stopping rules: the defaults, no waiting iterations at the
-residual floor (`settle=0`), and the early stop of the fast configuration (`settle=0,
-otol=2**-39`), with the closed-form Jacobian in all.
+More sub-steps give more accurate labels and, with tanh networks, a seed nearer the root and
+fewer Levenberg–Marquardt iterations, but the labels and the fit on N + 1 points cost more
+(and with GELU networks the runs fail: `--activation gelu`). This script measures that trade
+for each N under three stopping rules: the defaults, no waiting iterations at the residual
+floor (`settle=0`), and the early stop of the fast configuration (`settle=0, otol=2**-39`),
+with the closed-form Jacobian in all.
 
 Per row: success, median and mean iterations per step, error of q at the end relative to the
 amplitude, and ms per step (median of `--repeats` runs after compiling; the configurations'
@@ -14,6 +15,7 @@ runs are interleaved, so a load on the machine falls on all of them alike).
 
     PYTHONPATH=. .venv/bin/python benchmarks/seed_substeps.py [--substeps 10 20 40 100]
         [--problems double_pendulum] [--rules "early stop"] [--steps N] [--repeats R]
+        [--activation gelu]
 """
 
 from __future__ import annotations
@@ -49,9 +51,9 @@ RULES = {
 }
 
 
-def compiled_run(problem, nodes: int, steps: int, rule: str, substeps: int):
+def compiled_run(problem, nodes: int, steps: int, rule: str, substeps: int, activation):
     solver = dvi.NetworkVI(
-        dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(nodes),
+        dvi.ShallowNetBasis(activation, 10), dvi.GaussLegendre(nodes),
         initial_trajectory=dvi.IntegratorExtrapolation(substeps=substeps),
         root_finder=dvi.LevenbergMarquardt(**RULES[rule]))
 
@@ -76,9 +78,10 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=None,
                         help="steps per fixture (default: 200 oscillator, 20 double pendulum)")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--activation", choices=["tanh", "gelu"], default="tanh")
     ns = parser.parse_args(argv)
-    print("| fixture (tanh width 10, h = 0.1) | stopping rule | sub-steps | ok | iters median "
-          "| iters mean | rel. error q(t end) | ms/step |")
+    print(f"| fixture ({ns.activation} width 10, h = 0.1) | stopping rule | sub-steps | ok "
+          "| iters median | iters mean | rel. error q(t end) | ms/step |")
     print("|---|---|---|---|---|---|---|---|")
     for name in ns.problems:
         kind, nodes, steps = FIXTURES[name]
@@ -88,7 +91,8 @@ def main(argv=None):
         rows = {}
         for rule in ns.rules:
             for n in ns.substeps:
-                run = compiled_run(problem, nodes, steps, rule, n)
+                run = compiled_run(problem, nodes, steps, rule, n,
+                                   getattr(dvi, ns.activation))
                 sol, _ = timed(run, problem.y0)
                 rows[rule, n] = (run, sol, [])
         for _ in range(ns.repeats):

@@ -141,8 +141,7 @@ def _shallow(name: str, basis, symmetry=None) -> ShallowNetBasis:
 _SHARED_DOC = """
     **Options** (the reference's keywords):
 
-    - `extrapolation_substep`: sub-steps of the initial trajectory (even; default 20, the
-      default of `IntegratorExtrapolation`; the reference's is 10).
+    - `extrapolation_substep`: sub-steps of the initial trajectory (even; default 10).
     - `initial_trajectory_method`: `IntegratorExtrapolation()` (default),
       `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`.
     - `initial_guess_method`: the parameter seed (default as in the table of this module).

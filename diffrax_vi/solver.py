@@ -118,8 +118,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       `SymbolicAnsatz`, `LagrangeBasis`.
     - `quadrature`: rule on `[0, 1]` for the discrete action. Default `GaussLegendre(8)`.
     - `formulation`: `FreeEndpoints()` (default) or `InterpolatingEndpoints()`.
-    - `initial_trajectory`: `IntegratorExtrapolation()` (default, the reference's, with 20
-      sub-steps where the reference has 10),
+    - `initial_trajectory`: `IntegratorExtrapolation()` (default, the reference's),
       `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`.
     - `initial_guess`: how the seed parameters are fitted to the trajectory: an OGA
       configuration (default `OGA1d()`; shallow networks), `LSGD()`, `TrainingMethod()`,

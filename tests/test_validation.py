@@ -45,9 +45,9 @@ def test_simpson_substeps_not_even():
 
 def test_hermite_first_strategy_on_another_label_grid():
     with pytest.raises(ValueError, match="same label grid"):
-        dvi.HermiteExtrapolation(first=dvi.IntegratorExtrapolation())  # 10 against 20
-    traj = dvi.HermiteExtrapolation(20, first=dvi.IntegratorExtrapolation())
-    assert traj.first.substeps == 20 and dvi.HermiteExtrapolation().substeps == 10
+        dvi.HermiteExtrapolation(first=dvi.IntegratorExtrapolation(20))  # 10 against 20
+    traj = dvi.HermiteExtrapolation(20, first=dvi.IntegratorExtrapolation(20))
+    assert traj.first.substeps == 20 and dvi.HermiteExtrapolation().first is None
 
 
 @pytest.mark.parametrize("dt0", [0.0, float("nan")])

@@ -63,7 +63,7 @@ ACTIVATIONS = {
     "relu4": relu_k(4),
 }
 INITIAL_GUESSES = {
-    # the reference's grid, so its sub-step count too (our default is 20)
+    # the reference's grid, so its sub-step count too (explicit, whatever our default)
     "midpoint": lambda: IntegratorExtrapolation(substeps=10),
     "hermite": HermiteExtrapolation,
     "previous": NoExtrapolation,

@@ -119,20 +119,16 @@ def implicit_midpoint(
 class IntegratorExtrapolation(AbstractInitialTrajectory):
     """Integrate the step with the variational midpoint rule on `substeps` sub-steps.
 
-    The reference's default seed. The positions of the sub-steps are the labels; the final
+    The reference's default. The positions of the sub-steps are the labels; the final
     momentum seeds `p_{n+1}`.
 
     **Arguments:**
 
-    - `substeps`: number of sub-steps `N` (even; the seed fit uses Simpson weights). Default
-      20, where the reference uses 10: at h = 0.1 the more accurate labels cut the iterations
-      per step and end on a root nearer the motion (with the default stopping rule 7 to 94
-      times nearer on the oscillator, double pendulum, Hénon–Heiles and Kepler fixtures of
-      `benchmarks/seed_substeps.py`), at the same cost per step or up to a fifth more.
+    - `substeps`: number of sub-steps `N` (even; the seed fit uses Simpson weights). Default 10.
     - `newton_iterations`: fixed Newton iterations per sub-step for the midpoint velocity.
     """
 
-    substeps: int = eqx.field(static=True, default=20)
+    substeps: int = eqx.field(static=True, default=10)
     newton_iterations: int = eqx.field(static=True, default=4)
 
     def labels(self, term, t, h, q0, p0, args, history=None):
@@ -232,8 +228,7 @@ class HermiteExtrapolation(AbstractInitialTrajectory):
         if self.first is not None and self.first.substeps != self.substeps:
             raise ValueError(
                 f"HermiteExtrapolation(substeps={self.substeps}) needs a first strategy on the "
-                f"same label grid; got {self.first!r} with substeps={self.first.substeps} "
-                f"(IntegratorExtrapolation's default is 20)"
+                f"same label grid; got {self.first!r} with substeps={self.first.substeps}"
             )
 
     def _first(self) -> AbstractInitialTrajectory:
