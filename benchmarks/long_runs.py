@@ -25,7 +25,7 @@ arguments carries on from there: a run of hours survives an interruption. `--chu
 runs at most M chunks in this call (0: only report what the checkpoint holds).
 
     PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py toda_lattice 0.1 100000 8 16 fast \
-        --chunks 20 --checkpoint benchmarks/results/long_runs/toda_1e5.npz \
+        --chunks 50 --checkpoint benchmarks/results/long_runs/toda1e5_fast.npz \
         --peers tsit5:1e-10 dopri8:1e-10 dopri8:1e-12
 """
 
@@ -114,7 +114,7 @@ def chunked_run(problem, solver, controller, h: float, n: int, chunks: int, retr
                 raise SystemExit(f"{checkpoint} was written by a different run:\n  "
                                  f"{saved['label']}\nthis run:\n  {tag}")
             done, ok, seconds = int(saved["done"]), bool(saved["ok"]), list(saved["seconds"])
-            rejected = int(saved["rejected"]) if "rejected" in saved.files else 0
+            rejected = int(saved["rejected"])
             parts = []
             for name, kind in zip(("ys", "solver", "controller"), kinds, strict=True):
                 leaves, treedef = jax.tree_util.tree_flatten(kind)
@@ -150,7 +150,8 @@ def chunked_run(problem, solver, controller, h: float, n: int, chunks: int, retr
             tmp = checkpoint + ".tmp.npz"
             np.savez(tmp, **arrays)
             os.replace(tmp, checkpoint)
-    ts = np.asarray(problem.t0 + np.arange(ys_len(ys)) * (n * h / 1000))
+    saved_times = jax.tree_util.tree_leaves(ys)[0].shape[0]
+    ts = problem.t0 + np.arange(saved_times) * (n * h / 1000)
     total = float(np.sum(seconds))
     if done < chunks and ok:
         print(f"stopped after {done} of {chunks} chunks; the same command carries on",
@@ -159,11 +160,6 @@ def chunked_run(problem, solver, controller, h: float, n: int, chunks: int, retr
         print(f"{done} chunks in {total:.0f} s, median chunk {np.median(seconds):.1f} s "
               f"(each call's first chunk includes compiling)", flush=True)
     return ts, ys, ok, states[0], total, rejected
-
-
-def ys_len(ys) -> int:
-    """How many saved times a saved-state pytree holds."""
-    return int(jax.tree_util.tree_leaves(ys)[0].shape[0])
 
 
 def main(argv=None):
