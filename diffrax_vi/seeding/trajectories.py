@@ -215,7 +215,8 @@ class HermiteExtrapolation(AbstractInitialTrajectory):
     **Arguments:**
 
     - `substeps`: size `N` of the label grid (even). Default 10.
-    - `first`: the strategy without history. Default `IntegratorExtrapolation(substeps)`.
+    - `first`: the strategy without history, on the same label grid (`substeps`; another
+      grid is refused). Default `IntegratorExtrapolation(substeps)`.
     """
 
     substeps: int = eqx.field(static=True, default=10)
