@@ -3,7 +3,8 @@ problem, and what it costs: steps done, failure report, relative energy error ov
 times (largest per tenth of the span, to tell a bounded error from a drift), wall time of the
 first call (compile + run) and, with `--again`, of a second call.
 
-Configurations: `fast` (refitted neurons, closed-form Jacobian, settle=0), `default`
+Configurations: `fast` (refitted neurons, closed-form Jacobian, settle=0), `guarded`
+(`fast`, refitting only after steps solved in at most 12 iterations), `default`
 (`jacobian="auto"`, otherwise the defaults), `fwd` (the defaults) and `long-run` (refits
 only from steps accepted at a residual of at most 2048·eps, closed-form Jacobian: the energy
 study's long-run settings). `--retry` steps with `diffrax_vi.RetryFailedSteps()` instead of
@@ -24,8 +25,8 @@ FILE` the state after every chunk is written to FILE (`.npz`) and a later call w
 arguments carries on from there: a run of hours survives an interruption. `--chunks-now M`
 runs at most M chunks in this call (0: only report what the checkpoint holds).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py toda_lattice 0.1 100000 8 16 fast \
-        --chunks 50 --checkpoint benchmarks/results/long_runs/toda1e5_fast.npz \
+    PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py toda_lattice 0.1 100000 8 16 guarded \
+        --chunks 50 --checkpoint benchmarks/results/long_runs/toda1e5_guarded.npz \
         --peers tsit5:1e-10 dopri8:1e-10 dopri8:1e-12
 """
 
@@ -54,7 +55,8 @@ from energy_drift import _parse_peer, report_peers, span_parser  # noqa: E402
 EPS = float(jnp.finfo(jnp.float64).eps)
 FAST = dict(reuse_neurons=True,
             root_finder=dvi.LevenbergMarquardt(jacobian="auto", settle=0, otol=2.0**-39))
-CONFIGS = {"fast": FAST, "default": dict(root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
+CONFIGS = {"fast": FAST, "guarded": dict(FAST, refit_iterations=12),
+           "default": dict(root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
            "fwd": {},
            "long-run": dict(reuse_neurons=True, refit_residual=2048 * EPS,
                             root_finder=dvi.LevenbergMarquardt(jacobian="auto"))}
@@ -71,9 +73,11 @@ def per_tenth(ts: np.ndarray, error: np.ndarray, t0: float, t1: float) -> list[f
 
 
 def _checkpoint_label(label: dict) -> str:
-    """What identifies a run for `--checkpoint`: every argument that changes its steps."""
+    """What identifies a run for `--checkpoint`: every argument that changes its steps, and
+    the solver options its configuration names (so that editing a configuration is noticed)."""
     keep = {k: v for k, v in label.items() if k not in ("peers", "checkpoint")}
-    return repr(sorted(keep.items())) + f" MAXIT={os.environ.get('MAXIT')}"
+    options = repr(sorted(CONFIGS[label["config"]].items()))
+    return f"{sorted(keep.items())!r} {options} MAXIT={os.environ.get('MAXIT')}"
 
 
 def chunked_run(problem, solver, controller, h: float, n: int, chunks: int, retry: bool,
@@ -134,10 +138,17 @@ def chunked_run(problem, solver, controller, h: float, n: int, chunks: int, retr
         rejected += int(sol.stats["num_rejected_steps"])
         ys = jax.tree_util.tree_map(lambda a, b: np.concatenate([a, np.asarray(b)]), ys,
                                     sol.ys)
+        before = states[0]
         states = (sol.solver_state, sol.controller_state)
         done += 1
+        steps = int(sol.solver_state.steps) - int(before.steps)
+        iterations = int(sol.solver_state.iterations) - int(before.iterations)
+        carried = sum(int(getattr(sol.solver_state, k)) - int(getattr(before, k))
+                      for k in ("refits", "warm_starts"))
+        fresh = steps - carried
         print(f"chunk {done}/{chunks}: t = {t_start + per_chunk * h:.6g}, ok {ok}, steps "
-              f"done {int(sol.solver_state.steps)}, {seconds[-1]:.1f} s", flush=True)
+              f"done {int(sol.solver_state.steps)}, {seconds[-1]:.1f} s, mean iterations "
+              f"{iterations / max(steps, 1):.2f}, seeded by a fresh fit {fresh}", flush=True)
         if not ok:
             print(dvi.describe_failure(sol), flush=True)
         if checkpoint is not None:

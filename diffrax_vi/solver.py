@@ -155,7 +155,16 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       above the median residual of the defaults' steps (on the double pendulum at h = 0.05
       that median is 4e-10, and this limit would leave almost no refits). It does not suit a
       root finder that stops early (`settle=0`): its residuals sit above the limit, so most
-      steps would pay for the OGA.
+      steps would pay for the OGA; use `refit_iterations` there.
+    - `refit_iterations`: refit only from a previous step whose solve took at most this many
+      iterations; otherwise seed the step by a fresh fit. Default `None`: no limit. Slow
+      solves mark the same ill-conditioned roots as high residuals do, and this guard still
+      tells them apart when the root finder stops early. Without it, a long run of the fast
+      configuration (`settle=0`) drifts: on the Toda lattice at h = 0.1 (width 8, 16 nodes)
+      the mean count rose from about 7.5 per step over the first 10⁴ steps to about 19 by
+      step 16 000, where a fresh fit brings it back to 8 (`benchmarks/long_runs.py`). Set it
+      a little above the counts of steps seeded by a fresh fit (12 there, where they take
+      4 to 11): the guard then fires on about 1 % of the steps.
     - `restart_failed`: where the solve from a seed carried over from the previous step
       (`PreviousStep` warm start, `reuse_neurons` refit) fails, restart it once from a fresh
       trajectory fit (with `LevenbergMarquardt` or `RegularisedNewton`). Default `True`.
@@ -191,6 +200,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     reuse_neurons: bool = eqx.field(static=True, default=False)
     refit_tolerance: float | None = eqx.field(static=True, default=None)
     refit_residual: float | None = eqx.field(static=True, default=None)
+    refit_iterations: int | None = eqx.field(static=True, default=None)
     restart_failed: bool = eqx.field(static=True, default=True)
     root_finder: optx.AbstractRootFinder = LevenbergMarquardt()
     root_find_max_steps: int = eqx.field(static=True, default=100)
@@ -294,6 +304,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 raise ValueError(f"{name} must be None or a number >= 0, got {tol!r}")
             if tol is not None and not self.reuse_neurons:
                 raise ValueError(f"{name} applies to refits: pass it with reuse_neurons=True")
+        cap = self.refit_iterations
+        if cap is not None and (not isinstance(cap, int) or isinstance(cap, bool) or cap < 0):
+            raise ValueError(f"refit_iterations must be None or an integer >= 0, got {cap!r}")
+        if cap is not None and not self.reuse_neurons:
+            raise ValueError("refit_iterations applies to refits: pass it with reuse_neurons=True")
         if not isinstance(self.iteration_log, int) or self.iteration_log < 0:
             raise ValueError(
                 f"iteration_log must be a non-negative integer, got {self.iteration_log!r}"
@@ -393,12 +408,16 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def _refit_allowed(self, ctx: StepContext, state: NetworkVIState):
         """Whether the previous step's root is fit to refit from: its solve ended at a
-        residual of at most `refit_residual` (relative to the residual scale). Roots left at a
-        higher residual are ill-conditioned, and refits carried on from them drift into
-        worse ones, step after step."""
-        if self.refit_residual is None:
-            return jnp.array(True)
-        return state.report.residual <= self.refit_residual * _residual_scale(ctx)
+        residual of at most `refit_residual` (relative to the residual scale) and took at most
+        `refit_iterations` iterations. Roots left at a higher residual, or reached only
+        slowly, are ill-conditioned, and refits carried on from them drift into worse ones,
+        step after step."""
+        allowed = jnp.array(True)
+        if self.refit_residual is not None:
+            allowed = state.report.residual <= self.refit_residual * _residual_scale(ctx)
+        if self.refit_iterations is not None:
+            allowed = allowed & (state.last_iterations <= self.refit_iterations)
+        return allowed
 
     def _fallback_seed(self, args):
         """The fresh seed the root finder starts or restarts from. Its `args` carry the step

@@ -351,7 +351,7 @@ def test_full_grid_sample_draws_whole_compilation_groups():
     assert [g[0][0] for g in again.values()] == [g[0][0] for g in strata.values()]
 
 
-def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys):
+def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, monkeypatch):
     """benchmarks/long_runs.py: a tiny oscillator run, with and without the restart switch,
     in one solve and in chunks resumed from a checkpoint."""
     import importlib.util
@@ -371,6 +371,12 @@ def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys):
     module.main(run + ["--chunks", "5", "--checkpoint", checkpoint, "--chunks-now", "2"])
     out = capsys.readouterr().out
     assert "chunk 2/5" in out and "chunk 3/5" not in out
+    # one step per chunk, each seeded by a fresh fit (a width-6 network on 6 nodes refits
+    # too loosely for `refit_tolerance`)
+    chunk_lines = [line for line in out.splitlines() if line.startswith("chunk ")]
+    assert chunk_lines[0].startswith("chunk 1/5: t = 0.1, ok True, steps done 1,")
+    assert all(", mean iterations " in line and line.endswith("seeded by a fresh fit 1")
+               for line in chunk_lines)
     assert "stopped after 2 of 5 chunks" in out and "steps done 2," in out
     module.main(run + ["--chunks", "5", "--checkpoint", checkpoint])
     out = capsys.readouterr().out
@@ -387,6 +393,11 @@ def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys):
     with pytest.raises(SystemExit, match="different run"):
         module.main(["harmonic_oscillator", "0.2", "5", "6", "6", "fast", "--no-restart",
                      "--chunks", "5", "--checkpoint", checkpoint])
+    # an edited configuration is noticed too
+    monkeypatch.setitem(module.CONFIGS, "fast", dict(module.FAST, refit_iterations=12))
+    with pytest.raises(SystemExit, match="different run"):
+        module.main(run + ["--chunks", "5", "--checkpoint", checkpoint])
+    monkeypatch.undo()
     for bad in (["--chunks", "3"], ["--checkpoint", checkpoint], ["--chunks", "5", "--again"],
                 ["--chunks", "5", "--chunks-now", "1"],
                 ["--chunks", "5", "--checkpoint", checkpoint, "--chunks-now", "-1"]):

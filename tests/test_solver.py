@@ -418,6 +418,36 @@ def test_refit_residual_refits_only_from_roots_accepted_below_it(ho_tanh):
         assert max_relative_error(problem, sol) <= bound
 
 
+def test_refit_iterations_refits_only_after_quick_solves(ho_tanh):
+    """`refit_iterations` bounds the iterations of the previous step a refit may start from,
+    a guard that still tells roots apart under `settle=0`, whose residuals all sit near its
+    stopping tolerance. 0 seeds every step by a fresh fit; a cap refits exactly the steps
+    after one that took at most that many iterations; a cap above every count changes
+    nothing."""
+    problem, default = ho_tanh
+
+    def run(**kwargs):
+        solver = shallow(dvi.tanh, 10, 8, iteration_log=10, **{**FAST, **kwargs})
+        sol = solve(problem, solver, throw=False)
+        assert sol.result == diffrax.RESULTS.successful, dvi.describe_failure(sol)
+        return sol
+
+    never, unguarded = run(refit_iterations=0), run()
+    lenient = run(refit_iterations=int(unguarded.solver_state.max_iterations))
+    assert int(never.solver_state.refits) == 0
+    assert int(unguarded.solver_state.refits) == int(lenient.solver_state.refits) == 9
+    np.testing.assert_array_equal(lenient.ys[0], unguarded.ys[0])
+    np.testing.assert_allclose(never.ys[0], default.ys[0], rtol=0, atol=1e-12)
+    log = np.asarray(unguarded.solver_state.iteration_log)
+    cap = int(log.min())  # the fresh first step's count; refits here take one or two more
+    capped = run(refit_iterations=cap)
+    log = np.asarray(capped.solver_state.iteration_log)
+    expected = int(np.sum(log[:-1] <= cap))
+    assert 0 < expected < 9
+    assert int(capped.solver_state.refits) == expected
+    assert max_relative_error(problem, capped) <= 2e-11
+
+
 def test_fast_configuration_in_an_ensemble_matches_single_solves():
     """The OGA fallback is a while loop, lazy under vmap: members agree with single solves."""
     problem = problems.harmonic_oscillator()
@@ -449,6 +479,10 @@ def test_fast_configuration_in_an_ensemble_matches_single_solves():
         (dict(reuse_neurons=True, refit_residual="small"), "refit_residual"),
         (dict(refit_residual=1e-12), "reuse_neurons=True"),
         (dict(refit_tolerance=1e-8), "reuse_neurons=True"),
+        (dict(reuse_neurons=True, refit_iterations=-1), "refit_iterations"),
+        (dict(reuse_neurons=True, refit_iterations=2.5), "refit_iterations"),
+        (dict(reuse_neurons=True, refit_iterations=True), "refit_iterations"),
+        (dict(refit_iterations=10), "reuse_neurons=True"),
     ],
 )
 def test_fast_configuration_refuses_bad_options(kwargs, match):
