@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 
 import diffrax
 import jax.numpy as jnp
@@ -262,6 +263,29 @@ def test_cli_parallel_parts_are_merged(tmp_path):
     assert "Wall time of the run" in text and "pendulum" in text
     with pytest.raises(SystemExit):
         cli_main(["stability", "--jobs", "0", "--out", out])
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="no CPU affinity here")
+def test_parallel_workers_get_their_own_cpus():
+    """Each worker slot of `--jobs` gets a disjoint share of the CPUs, the child process
+    inherits it, and the parent keeps its own."""
+    import subprocess
+
+    from diffrax_vi.bench.__main__ import _cpu_slots, _spawn
+
+    own = os.sched_getaffinity(0)
+    slots = _cpu_slots(2)
+    if len(own) >= 2:
+        assert all(slots) and not slots[0] & slots[1] and slots[0] | slots[1] == own
+    else:
+        assert slots == [None, None]
+    assert _cpu_slots(len(own) + 1) == [None] * (len(own) + 1)
+    probe = [sys.executable, "-c", "import os; print(*sorted(os.sched_getaffinity(0)))"]
+    for cpus in (slots[0], None):
+        proc = _spawn(probe, cpus, stdout=subprocess.PIPE, text=True)
+        seen = {int(k) for k in proc.communicate()[0].split()}
+        assert seen == (cpus if cpus is not None else own)
+        assert os.sched_getaffinity(0) == own
 
 
 def test_harness_refuses_bad_input():
