@@ -16,7 +16,12 @@
    members, its throughput extrapolated): `--members` (default 1024) with the default
    `batch_size="auto"` (a compiled loop over members on a CPU) and `--vmap-members` (default
    128) with `batch_size=None` (full vmap, lockstep);
-5. with `--devices 8` (default), the same ensemble sharded over 8 virtual CPU devices in a
+5. the floor of that ensemble on this machine: the linear solve of one Levenberg–Marquardt
+   iteration (`damped_least_squares` of the member's square Jacobian), vmapped over
+   `--members` members, per member, times the iterations of a member's solve: a lower bound
+   on a member's time that ignores everything else a step does (Jacobian, residuals, seed
+   fits), and so an upper bound on any ensemble's throughput against the loop;
+6. with `--devices 8` (default), the same ensemble sharded over 8 virtual CPU devices in a
    subprocess (`XLA_FLAGS=--xla_force_host_platform_device_count=8`), its time and the
    largest difference from the unsharded result.
 
@@ -48,10 +53,12 @@ import diffrax  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.bench import iteration_summary, timed  # noqa: E402
+from diffrax_vi.linalg import damped_least_squares  # noqa: E402
 
 H = 0.1
 
@@ -172,6 +179,25 @@ def ensemble_figures(members, vmap_members, loop_sample, repeats):
     return per_loop, rows
 
 
+def least_squares_floor(members, repeats):
+    """Seconds per member of the linear solve of one LM iteration, vmapped over `members`
+    members of the ensemble's size, and the nonlinear iterations of one member's solve."""
+    y0 = ensemble_inputs(1)
+    sol = diffrax.diffeqsolve(
+        _HO.term, _SOLVER, 0.0, 1.0, H, (y0[0][0], y0[1][0]),
+        saveat=diffrax.SaveAt(t1=True, solver_state=True),
+    )
+    state = sol.solver_state
+    n = ravel_pytree(state.theta)[0].size + y0[0].shape[1]  # network parameters and p_{n+1}
+    rng = np.random.default_rng(1)
+    jac = jnp.asarray(rng.standard_normal((members, n, n)))
+    rhs = jnp.asarray(rng.standard_normal((members, n)))
+    solve = jax.jit(jax.vmap(lambda a, b: damped_least_squares(a, b, 1e-4)))
+    jax.block_until_ready(solve(jac, rhs))
+    per_member = statistics.median(timed(solve, jac, rhs)[1] for _ in range(5 * repeats)) / members
+    return per_member, int(state.iterations), n
+
+
 def sharded_child(members, repeats):
     assert jax.device_count() == 8, jax.devices()
     y0 = ensemble_inputs(members)
@@ -272,6 +298,15 @@ def main():
             f"{e['ens_compile_s']:.1f} | {e['speedup']:.2f}x | {e['diff']:.1e} |"
         )
     print("target (issue 7): throughput >= 50x a Python loop")
+    per_solve, iterations, n = least_squares_floor(args.members, args.repeats)
+    floor = per_solve * iterations
+    print(
+        f"floor: the {n}x{n} damped least-squares solve of one LM iteration, vmapped over "
+        f"{args.members} members, takes {per_solve * 1e6:.1f} us per member; a member's "
+        f"solve takes {iterations} iterations, so at least {floor * 1e3:.3f} ms per member "
+        f"from the linear solves alone: any ensemble is at most {per_loop / floor:.1f}x the "
+        f"loop's throughput on this machine"
+    )
     if args.devices:
         cmd = [
             sys.executable,

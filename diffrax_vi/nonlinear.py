@@ -184,8 +184,9 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
 
-    def direction(self, jac: Array, f: Array) -> Array:
-        """The step from the Jacobian and the residual."""
+    def direction(self, jac: Array, f: Array, stalls: Array | int = 0) -> Array:
+        """The step from the Jacobian and the residual; `stalls` counts the failed line
+        searches just before (a subclass may damp the step harder after them)."""
         raise NotImplementedError
 
     def _reference_mode(self):
@@ -273,7 +274,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             refresh = jnp.array(True)
             jac, f, aux = fresh()
         reused = jnp.where(refresh, 0, state.reused + 1)
-        d = self.direction(jac, f)
+        d = self.direction(jac, f, state.stalls)
         slope = jnp.dot(f, jac @ d)  # derivative of ½‖F(y + a d)‖² at a = 0
         phi0 = 0.5 * jnp.dot(f, f)
         c1 = jnp.asarray(1e-4, dtype)
@@ -496,13 +497,30 @@ class LevenbergMarquardt(AbstractDampedNewton):
     **Arguments:**
 
     - `lam`: scale λ of the damping `μ = λ‖F‖`. Default `1e-3`.
+    - `stall_damping`: after `k` consecutive failed line searches (`k ≤ max_stalls`) the
+      damping is `stall_damping^k·λ‖F‖`; it returns to `λ‖F‖` after an accepted step.
+      Default `100`; `1` keeps the damping fixed (as before; see the changelog). Near a nearly
+      singular Jacobian the small damping `λ‖F‖` gives a long step along near-null
+      directions that no backtracking rescues, and the next iteration would try the same
+      step again; the growing damping shortens it and turns it towards steepest descent.
     """
 
     lam: float = 1e-3
+    stall_damping: float = 100.0
 
-    def direction(self, jac, f):
+    def __check_init__(self):
+        growth = self.stall_damping
+        if isinstance(growth, bool) or not isinstance(growth, int | float) or not growth >= 1:
+            raise ValueError(f"stall_damping must be a number >= 1, got {growth!r}")
+
+    def direction(self, jac, f, stalls=0):
         eps = jnp.finfo(f.dtype).eps
         mu = jnp.asarray(self.lam, f.dtype) * jnp.sqrt(jnp.dot(f, f))
+        # Damp harder after failed line searches (`stall_damping`), the growth computed in at
+        # least float32 and capped so that float16 cannot overflow.
+        wide = jnp.promote_types(f.dtype, jnp.float32)
+        growth = jnp.asarray(self.stall_damping, wide) ** jnp.asarray(stalls, wide)
+        mu = jnp.minimum(mu.astype(wide) * growth, jnp.finfo(f.dtype).max).astype(f.dtype)
         mu = jnp.maximum(mu, (eps * jnp.max(jnp.abs(jac))) ** 2)
         return damped_least_squares(jac, -f, jnp.sqrt(mu))
 
@@ -522,7 +540,8 @@ class RegularisedNewton(AbstractDampedNewton):
 
     lam: float = 2.4e-7
 
-    def direction(self, jac, f):
+    def direction(self, jac, f, stalls=0):
+        del stalls
         n = f.shape[0]
         lam = jnp.asarray(self.lam, f.dtype)
         return -solve(jac + lam * jnp.eye(n, dtype=f.dtype), f)

@@ -375,6 +375,22 @@ def test_full_grid_sample_draws_whole_compilation_groups():
     assert [g[0][0] for g in again.values()] == [g[0][0] for g in strata.values()]
 
 
+def test_speed_script_measures_the_ensemble_floor():
+    """benchmarks/speed.py's floor of an ensemble member: the vmapped linear solve of one
+    LM iteration at the fixture's size (31 unknowns: the 30 parameters of 10 neurons and
+    p_{n+1}), and the iterations of one member's solve."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "speed.py")
+    spec = importlib.util.spec_from_file_location("speed", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    per_member, iterations, n = module.least_squares_floor(4, 1)
+    assert n == 31
+    assert 0 < per_member < 0.1
+    assert 10 <= iterations <= 10 * 100  # 10 steps, each 1 to root_find_max_steps
+
+
 def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, monkeypatch):
     """benchmarks/long_runs.py: a tiny oscillator run, with and without the restart switch,
     in one solve and in chunks resumed from a checkpoint."""

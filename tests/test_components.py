@@ -278,6 +278,39 @@ def test_levenberg_marquardt_non_isolated_roots():
     assert newton.result != optx.RESULTS.successful
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
+def test_levenberg_marquardt_damps_harder_after_failed_line_searches(dtype):
+    """After `k` failed line searches the damping is `stall_damping^k·λ‖F‖`: the step
+    shortens and turns towards steepest descent `−JᵀF`; `stall_damping=1` keeps it; the
+    growth cannot overflow float16."""
+    rng = np.random.default_rng(3)
+    jac = rng.standard_normal((6, 6))
+    jac[:, 0] = jac[:, 1] * (1 + 1e-3)  # nearly singular
+    f = rng.standard_normal(6)
+    jac_t, f_t = jnp.asarray(jac, dtype), jnp.asarray(f, dtype)
+    descent = -(jac.T @ f)
+
+    def step(solver, k):
+        d = solver.direction(jac_t, f_t, jnp.asarray(k, jnp.int32))
+        assert d.dtype == dtype and bool(jnp.all(jnp.isfinite(d)))
+        d = np.asarray(d, np.float64)
+        return np.linalg.norm(d), d @ descent / np.linalg.norm(d) / np.linalg.norm(descent)
+
+    grows, fixed = LevenbergMarquardt(), LevenbergMarquardt(stall_damping=1)
+    lengths, cosines = zip(*(step(grows, k) for k in range(4)), strict=True)
+    assert all(b < 0.9 * a for a, b in zip(lengths, lengths[1:], strict=False)), lengths
+    assert lengths[-1] < 0.01 * lengths[0], lengths
+    assert cosines[0] < 0.9 and cosines[-1] > 0.99, cosines
+    same = [step(fixed, k)[0] for k in range(4)]
+    np.testing.assert_allclose(same, same[0], rtol=1e-6)
+    np.testing.assert_allclose(same[0], lengths[0], rtol=1e-6)
+    far = grows.direction(jac_t, f_t, jnp.asarray(30, jnp.int32))  # 100^30: capped, not inf
+    assert bool(jnp.all(jnp.isfinite(far)))
+    for bad in (0.5, True, "10", float("nan")):
+        with pytest.raises(ValueError, match="stall_damping"):
+            LevenbergMarquardt(stall_damping=bad)
+
+
 @pytest.mark.parametrize("solver", ROOT_FINDERS, ids=ids)
 def test_root_finder_no_root_is_not_successful(solver):
     no_root = lambda y, args: y**2 + 1.0
