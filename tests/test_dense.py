@@ -286,7 +286,7 @@ def test_bad_hyperparameters_refused(make, message):
 # End to end
 
 
-def solve(problem, solver, dtype=jnp.float64):
+def solve(problem, solver, dtype=jnp.float64, **kwargs):
     ts = jnp.asarray(problem.ts, dtype)
     run = eqx.filter_jit(
         lambda y0: diffrax.diffeqsolve(
@@ -299,6 +299,7 @@ def solve(problem, solver, dtype=jnp.float64):
             args=problem.args,
             saveat=diffrax.SaveAt(ts=ts, solver_state=True),
             throw=False,
+            **kwargs,
         )
     )
     return run(problem.y0)
@@ -331,10 +332,12 @@ def test_harmonic_oscillator_dense_lsgd():
 
 def test_harmonic_oscillator_dense_training_method():
     problem = problems.harmonic_oscillator()
-    sol = solve(problem, dense_vi(TrainingMethod()))
+    # Adam's seed is far less accurate than LSGD's, and Newton lands on a less accurate root of
+    # the rank-deficient step equations. On CI's CPU step [0.5, 0.6] stalls from that seed at
+    # residual 2.3e-9 (74 iterations); retried in pieces it succeeds, as the failure message
+    # advises: 5.5e-9 there, with 31-83 iterations per step (7.2e-9 elsewhere, no retry).
+    sol = solve(problem, dense_vi(TrainingMethod()), stepsize_controller=dvi.RetryFailedSteps())
     assert sol.result == diffrax.RESULTS.successful
-    # Measured 7.2e-9 with 31-56 iterations per step: Adam's seed is far less accurate than
-    # LSGD's, and Newton lands on a less accurate root of the rank-deficient step equations.
     assert max_relative_error(problem, sol) <= 5e-8
 
 

@@ -53,11 +53,14 @@ def test_harmonic_oscillator_tanh_width10(ho_tanh):
     assert sol.result == diffrax.RESULTS.successful
     # Max over the 10 step ends: 2.2e-13 to 2.6e-13 (5.4e-13 once) over equivalent
     # least-squares and Jacobian variants, whose rounding picks different points of the
-    # root manifold; the final error varies more (1.2e-15 to 5.4e-13). The reference's best
-    # *final* error at this setting is 3.4e-14.
-    assert max_relative_error(problem, sol) <= 6e-13
+    # root manifold; the final error varies more (1.2e-15 to 5.4e-13). On the AVX-512 Xeon
+    # of CI the rounding differs and step [0.4, 0.5] creeps (residual 1.7e-11 falling ~7 %
+    # per iteration, the outputs moving 1e-12 per iteration) until the `creeping` floor test
+    # accepts it at 8.9e-12 after 11 iterations: 7.0e-12 there, final error the same. The
+    # bound covers both; the reference's best *final* error at this setting is 3.4e-14.
+    assert max_relative_error(problem, sol) <= 1e-11
     q_ref, _ = problem.reference(np.asarray(sol.ts[-1:]))
-    assert abs(float(sol.ys[0][-1, 0]) - q_ref[0, 0]) / abs(q_ref[0, 0]) <= 6e-13
+    assert abs(float(sol.ys[0][-1, 0]) - q_ref[0, 0]) / abs(q_ref[0, 0]) <= 1e-11
 
 
 def test_iteration_statistics(ho_tanh):
@@ -393,7 +396,8 @@ def test_refit_tolerance_zero_falls_back_to_the_oga():
     sol = solve(problem, shallow(dvi.tanh, 10, 8, reuse_neurons=True, refit_tolerance=0.0))
     assert sol.result == diffrax.RESULTS.successful
     assert int(sol.solver_state.refits) == 0
-    assert max_relative_error(problem, sol) <= 5e-13
+    # the default seed's result (`test_harmonic_oscillator_tanh_width10`: up to 7.0e-12)
+    assert max_relative_error(problem, sol) <= 1e-11
 
 
 def test_refit_residual_refits_only_from_roots_accepted_below_it(ho_tanh):
@@ -412,8 +416,9 @@ def test_refit_residual_refits_only_from_roots_accepted_below_it(ho_tanh):
     assert 0 < int(limited.solver_state.refits) < int(limited.solver_state.steps) - 1 == 9
     np.testing.assert_allclose(never.ys[0], default.ys[0], rtol=0, atol=1e-14)
     assert int(never.solver_state.iterations) == int(default.solver_state.iterations)
-    # refitted roots sit at a higher residual (the docstring of `reuse_neurons`: 1.2e-11)
-    for sol, bound in ((never, 5e-13), (limited, 2e-11)):
+    # refitted roots sit at a higher residual (the docstring of `reuse_neurons`: 1.2e-11);
+    # `never` is the default seed's result (up to 7.0e-12, `test_harmonic_oscillator_tanh_width10`)
+    for sol, bound in ((never, 1e-11), (limited, 2e-11)):
         assert sol.result == diffrax.RESULTS.successful
         assert max_relative_error(problem, sol) <= bound
 
@@ -437,7 +442,8 @@ def test_refit_iterations_refits_only_after_quick_solves(ho_tanh):
     assert int(never.solver_state.refits) == 0
     assert int(unguarded.solver_state.refits) == int(lenient.solver_state.refits) == 9
     np.testing.assert_array_equal(lenient.ys[0], unguarded.ys[0])
-    np.testing.assert_allclose(never.ys[0], default.ys[0], rtol=0, atol=1e-12)
+    # same seeds, different stopping rule (settle=0): 2.9e-12 apart where a default step creeps
+    np.testing.assert_allclose(never.ys[0], default.ys[0], rtol=0, atol=1e-11)
     log = np.asarray(unguarded.solver_state.iteration_log)
     cap = int(log.min())  # the fresh first step's count; refits here take one or two more
     capped = run(refit_iterations=cap)
