@@ -146,7 +146,7 @@ def ensemble_figures(members, vmap_members, loop_sample, repeats):
     """Throughput of `dvi.ensemble` (members per second) against a Python loop of single
     jitted solves: the default `batch_size` ("auto": one member after another on a CPU) on
     `members` members, and full `vmap` (`batch_size=None`, lockstep) on `vmap_members`."""
-    y0 = ensemble_inputs(members)
+    y0 = ensemble_inputs(max(members, vmap_members))
     single = jax.jit(solve_member)
     jax.block_until_ready(single((y0[0][0], y0[1][0])))
     loops = []
@@ -235,6 +235,10 @@ def main():
     parser.add_argument("--loop-sample", type=int, default=16)
     parser.add_argument("--devices", type=int, default=8, help="0 skips the sharded run")
     parser.add_argument("--quick", action="store_true", help="100/20 steps, 128 members")
+    parser.add_argument(
+        "--only", choices=("fixtures", "ensembles"), default=None,
+        help="run sections 1-3 (fixtures) or 4-6 (ensembles, floor, sharding) alone",
+    )
     parser.add_argument("--sharded-child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.quick:
@@ -250,6 +254,14 @@ def main():
         f"{jax.__version__} ({jax.default_backend()}), os.cpu_count() = {os.cpu_count()}, "
         f"load average {os.getloadavg()[0]:.1f}"
     )
+    if args.only != "ensembles":
+        fixture_figures(args)
+    if args.only != "fixtures":
+        ensemble_section(args)
+
+
+def fixture_figures(args):
+    """Sections 1-3: time per step, iterations, error and first-call time per fixture."""
     ho = problems.harmonic_oscillator(dtype=jnp.float64)
     dp = problems.double_pendulum(dtype=jnp.float64)
     rows = []
@@ -281,6 +293,9 @@ def main():
             )
     print("targets: HO <= 1 ms/step, DP <= 3 ms/step, median iterations <= 4, compile <= 10 s")
 
+
+def ensemble_section(args):
+    """Sections 4-6: ensembles against a loop, the linear-solve floor, the sharded run."""
     per_loop, rows = ensemble_figures(
         args.members, args.vmap_members, args.loop_sample, args.repeats
     )

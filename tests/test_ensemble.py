@@ -71,11 +71,13 @@ def test_bad_input_is_refused():
             dvi.ensemble(solve_one, y0, jnp.ones(3), batch_size=bad)
 
 
-def test_auto_batch_size_is_sequential_on_cpu():
+def test_auto_batch_size_is_sequential_on_cpu_and_vmapped_elsewhere():
     from diffrax_vi.ensemble import _resolve_batch_size
 
-    assert jax.default_backend() == "cpu"
-    assert _resolve_batch_size("auto", None) == 1
+    # one member after another on a CPU, full vmap on an accelerator (both ran: CPU in CI, an
+    # H200 in the speed benchmark)
+    expected = 1 if jax.default_backend() == "cpu" else None
+    assert _resolve_batch_size("auto", None) == expected
     assert _resolve_batch_size(None, None) is None
     assert _resolve_batch_size(4, None) == 4
 

