@@ -25,7 +25,9 @@
    subprocess (`XLA_FLAGS=--xla_force_host_platform_device_count=8`), its time and the
    largest difference from the unsharded result.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/speed.py [--quick]
+    PYTHONPATH=. .venv/bin/python benchmarks/speed.py [--quick] [--only fixtures|ensembles]
+
+`--only fixtures` runs sections 1-3, `--only ensembles` sections 4-6.
 """
 
 from __future__ import annotations

@@ -355,15 +355,21 @@ def test_published_suites_hold_the_documented_networkvi_settings():
     assert {e.family for e in (warm, fast, first, long_run)} == {"ours"}
 
 
+def benchmark_script(name: str):
+    """Import `benchmarks/<name>.py` (not a package) as a module."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_full_grid_sample_draws_whole_compilation_groups():
     """benchmarks/full_grid_sample.py: per solver, seeded random groups of cases that share a
     compilation (LevenbergMarquardt: 4 dt; RegularisedNewton: 4 dt x 5 λ)."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "full_grid_sample.py")
-    spec = importlib.util.spec_from_file_location("full_grid_sample", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("full_grid_sample")
     strata = module.sample_groups("pendulum", 3, seed=1)
     assert sorted(strata) == ["LevenbergMarquardt", "RegularisedNewton"]
     for solver, (groups, total) in strata.items():
@@ -379,27 +385,37 @@ def test_speed_script_measures_the_ensemble_floor():
     """benchmarks/speed.py's floor of an ensemble member: the vmapped linear solve of one
     LM iteration at the fixture's size (31 unknowns: the 30 parameters of 10 neurons and
     p_{n+1}), and the iterations of one member's solve."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "speed.py")
-    spec = importlib.util.spec_from_file_location("speed", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("speed")
     per_member, iterations, n = module.least_squares_floor(4, 1)
     assert n == 31
     assert 0 < per_member < 0.1
     assert 10 <= iterations <= 10 * 100  # 10 steps, each 1 to root_find_max_steps
 
 
+@pytest.mark.parametrize(
+    "only, expected", [(None, ["fixtures", "ensembles"]), ("fixtures", ["fixtures"]),
+                       ("ensembles", ["ensembles"])],
+)
+def test_speed_script_runs_the_sections_asked_for(monkeypatch, capsys, only, expected):
+    """benchmarks/speed.py --only: half of the script (the GPU run used `--only ensembles`)."""
+    module = benchmark_script("speed")
+    ran = []
+    monkeypatch.setattr(module, "fixture_figures", lambda args: ran.append("fixtures"))
+    monkeypatch.setattr(module, "ensemble_section", lambda args: ran.append("ensembles"))
+    argv = ["speed.py"] + ([] if only is None else ["--only", only])
+    monkeypatch.setattr(sys, "argv", argv)
+    module.main()
+    assert ran == expected
+    monkeypatch.setattr(sys, "argv", ["speed.py", "--only", "everything"])
+    with pytest.raises(SystemExit):
+        module.main()
+    assert "invalid choice: 'everything'" in capsys.readouterr().err
+
+
 def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, monkeypatch):
     """benchmarks/long_runs.py: a tiny oscillator run, with and without the restart switch,
     in one solve and in chunks resumed from a checkpoint."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "long_runs.py")
-    spec = importlib.util.spec_from_file_location("long_runs", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("long_runs")
     run = ["harmonic_oscillator", "0.1", "5", "6", "6", "fast", "--no-restart"]
     module.main(run)
     whole = capsys.readouterr().out
@@ -453,12 +469,7 @@ def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, mo
 
 def test_seed_substeps_script_prints_a_row_per_rule_and_substep_count(capsys):
     """benchmarks/seed_substeps.py: a tiny oscillator run converges and reports iterations."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "seed_substeps.py")
-    spec = importlib.util.spec_from_file_location("seed_substeps", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("seed_substeps")
     module.main(["--problems", "harmonic_oscillator", "--rules", "early stop", "--substeps",
                  "10", "--steps", "3", "--repeats", "1"])
     rows = [[c.strip() for c in line.split("|")[1:-1]]
@@ -471,12 +482,7 @@ def test_seed_substeps_script_prints_a_row_per_rule_and_substep_count(capsys):
 def test_root_existence_script_reports_each_seed(capsys):
     """benchmarks/root_existence.py: one row per seed and step length; a short oscillator
     step converges and is accurate, a failed one reports the stalled iterate's error."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "root_existence.py")
-    spec = importlib.util.spec_from_file_location("root_existence", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("root_existence")
     module.main(["harmonic_oscillator", "tanh", "10", "8", "--dts", "0.1", "10",
                  "--seeds", "OGA1d (10 sub-steps)"])
     out = capsys.readouterr().out
@@ -493,16 +499,11 @@ def test_root_existence_script_reports_each_seed(capsys):
 def test_pendulum_constraint_script_measures_p2_and_projects_it():
     """benchmarks/pendulum_constraint.py: its compiled step loop carries p₂ (nonzero after a
     network step), and the projection sets it to zero after every step."""
-    import importlib.util
-
     import jax.numpy as jnp
 
     from diffrax_vi import problems
 
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "pendulum_constraint.py")
-    spec = importlib.util.spec_from_file_location("pendulum_constraint", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("pendulum_constraint")
     problem = problems.pendulum(dtype=jnp.float64)
     solver = module.network(8)
     q, p, ok, residual = module.run_steps(solver, problem, 0.1, 3)
@@ -535,12 +536,7 @@ def test_iteration_summary_reads_the_solver_counters():
 def test_compile_phases_script_splits_the_first_call():
     """benchmarks/compile_phases.py on the smallest fixture: both phases timed, the program
     sized."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "compile_phases.py")
-    spec = importlib.util.spec_from_file_location("compile_phases", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("compile_phases")
     trace, compile_s, size = module.phases("harmonic_oscillator", "fast", steps=2)
     assert trace > 0 and compile_s > 0 and size > 10_000
     # --cache: a second process reads the program from the persistent cache the first wrote
@@ -551,12 +547,7 @@ def test_compile_phases_script_splits_the_first_call():
 def test_program_parts_script_attributes_operations_to_package_functions():
     """benchmarks/program_parts.py: every primitive of a traced solve is counted once, the
     root finder and the residual are among the owners, and the top-level view sums the same."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "program_parts.py")
-    spec = importlib.util.spec_from_file_location("program_parts", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("program_parts")
     inner = module.program_parts("harmonic_oscillator", "fast", steps=2)
     top = module.program_parts("harmonic_oscillator", "fast", depth=1, steps=2)
     assert sum(inner.values()) == sum(top.values()) > 1000
@@ -567,16 +558,11 @@ def test_program_parts_script_attributes_operations_to_package_functions():
 def test_energy_drift_script_reports_slope_and_accepted_residuals(capsys):
     """benchmarks/energy_drift.py: the compiled step loop returns states and accepted
     residuals, and the summary recovers a known linear drift."""
-    import importlib.util
-
     import jax.numpy as jnp
 
     from diffrax_vi import problems
 
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "energy_drift.py")
-    spec = importlib.util.spec_from_file_location("energy_drift", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("energy_drift")
     problem = problems.harmonic_oscillator(dtype=jnp.float64)
     q, p, ok, residual, refits, steady, iterations = module.run_steps(
         module.solver_for("default"), problem, 0.25, 5, repeats=1)
@@ -611,12 +597,7 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals(capsys):
 def test_oga_coordinates_script_compares_loop_and_vmap():
     """benchmarks/oga_coordinates.py: both layouts of the per-coordinate OGA seed give the
     same parameters, and both are timed."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "oga_coordinates.py")
-    spec = importlib.util.spec_from_file_location("oga_coordinates", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_script("oga_coordinates")
     r = module.compare(2, repeats=1, dict_amount=200)
     assert r["diff"] <= 1e-10
     assert min(r["loop"] + r["vmap"]) > 0

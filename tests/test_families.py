@@ -291,8 +291,9 @@ def test_sympy_and_autodiff_backends_agree_on_a_solution():
         run(problem, dvi.ShallowNet(B(dvi.tanh, 10, derivatives=d), GL(8)))
         for d in ("autodiff", "sympy")
     ]
-    # The two backends round differently; where a step ends by the creeping floor test (on
-    # CI's CPU) the two accepted roots are 2.7e-12 apart, elsewhere 1e-13.
+    # The two backends round differently: the accepted roots were within 1e-12 on earlier
+    # machines, 2.7e-12 apart on CI's CPU (where a step ends by the creeping floor test) and
+    # 1.1e-11 on an H200 (where this bound fails; see the changelog, 2026-11-26).
     for a, b in zip(sols[0].ys, sols[1].ys, strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-11)
     assert max_relative_error(problem, sols[1]) <= 1e-11
