@@ -601,3 +601,31 @@ def test_oga_coordinates_script_compares_loop_and_vmap():
     r = module.compare(2, repeats=1, dict_amount=200)
     assert r["diff"] <= 1e-10
     assert min(r["loop"] + r["vmap"]) > 0
+
+
+def test_floor_acceptance_script_solves_a_fixture_and_refuses_bad_settings(capsys):
+    """benchmarks/floor_acceptance.py: a fixture row under a root-finder setting and a patched
+    tolerance; malformed settings are refused by name."""
+    import diffrax_vi.nonlinear as nonlinear
+
+    module = benchmark_script("floor_acceptance")
+    original = nonlinear.default_tolerances
+    try:
+        module.main(["--only", "1", "--root-finder", "lam=1e-3", "--tolerance", "otol_slow=0.75"])
+        eps = float(np.finfo(np.float64).eps)
+        assert nonlinear.default_tolerances(jnp.float64)["otol_slow"] == eps**0.75
+    finally:
+        nonlinear.default_tolerances = original
+    row = [line for line in capsys.readouterr().out.splitlines() if "relu_k(3) 4" in line]
+    assert len(row) == 1 and "| True |" in row[0]
+    error = float(row[0].split("|")[3])
+    assert 0 < error <= 1e-12  # test_solver: measured 3.8e-13
+    for argv, message in (
+        (["--root-finder", "lam"], "expected NAME=VALUE"),
+        (["--root-finder", "lam=small"], "not a Python literal"),
+        (["--root-finder", "damping=1"], "--root-finder"),
+        (["--tolerance", "floor_movin=0.7"], "unknown tolerance"),
+    ):
+        with pytest.raises(SystemExit, match=message):
+            module.main(argv)
+    assert nonlinear.default_tolerances is original
