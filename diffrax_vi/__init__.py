@@ -44,6 +44,7 @@ from .oga import (
     WeightedQR,
     oga_fit,
 )
+from .projection import RoundoffNewton, VariableProjection
 from .quadrature import GaussLegendre, Simpson
 from .results import StepReport, describe_failure, failure_kind
 from .seeding import (
@@ -97,6 +98,8 @@ __all__ = [
     "AngularGrid",
     "BiasGrid1d",
     "FreeEndpoints",
+    "VariableProjection",
+    "RoundoffNewton",
     "GaussLegendre",
     "IODETerm",
     "IncrementalQR",

@@ -7,10 +7,13 @@ be taken at all:
 | member | `failure_kind` | meaning |
 |---|---|---|
 | `RESULTS.vi_step_max_iterations` | `"maxiter"` | the iteration cap `root_find_max_steps` was hit |
-| `RESULTS.vi_step_stalled` | `"diverged"` | the residual stopped falling above the tolerance |
+| `RESULTS.vi_step_stalled` | `"stalled"` | the residual stopped falling above the tolerance |
 | `RESULTS.vi_step_nonfinite` | `"nonfinite"` | NaN or inf in the residual or in the end state |
 | `RESULTS.vi_step_singular` | `"singular"` | the linear solve of an iteration broke down |
-| `RESULTS.vi_step_size_invalid` | `"other"` | the step is zero or not finite (`dt0`, `t0`, `t1`) |
+| `RESULTS.vi_step_size_invalid` | `"step_size"` | the step is zero or not finite (`dt0`, `t0`) |
+
+diffrax's own failures have kinds too (`"max_steps"`, `"max_rejected"`, `"dt_min"`), and so do
+the results of optimistix and lineax (a divergent root find is `"diverged"`); see `FAILURE_KINDS`.
 
 `diffrax.diffeqsolve` only forwards members of its own `RESULTS`, and only checks results with
 `is_okay`, so the members are registered on `diffrax.RESULTS` itself when `diffrax_vi` is
@@ -69,7 +72,7 @@ _MESSAGES = {
     ),
     "vi_step_size_invalid": (
         "diffrax_vi: the step size must be finite and non-zero (check dt0, t0 and t1: a zero "
-        "or NaN dt0, or a NaN time, gives such a step)." + _WHERE
+        "or NaN dt0, or an infinite t0, gives such a step)." + _WHERE
     ),
 }
 
@@ -86,12 +89,17 @@ def _register(enumeration, name: str, message: str):
 
 
 STEP_FAILURES = {name: _register(diffrax.RESULTS, name, msg) for name, msg in _MESSAGES.items()}
-# Member name -> failure kind, for every way a step (or a solver inside it) can fail.
+# Member name -> failure kind: one kind per way of failing, so that a kind says what happened.
 FAILURE_KINDS = {
     "vi_step_max_iterations": "maxiter",
-    "vi_step_stalled": "diverged",
+    "vi_step_stalled": "stalled",
     "vi_step_nonfinite": "nonfinite",
     "vi_step_singular": "singular",
+    "vi_step_size_invalid": "step_size",
+    # diffrax's own failures: the step budget, the step size controller.
+    "max_steps_reached": "max_steps",
+    "max_steps_rejected": "max_rejected",
+    "dt_min_reached": "dt_min",
     # The same failures as reported by optimistix/lineax (other root finders, other solvers).
     "nonlinear_max_steps_reached": "maxiter",
     "nonlinear_divergence": "diverged",
@@ -99,7 +107,7 @@ FAILURE_KINDS = {
     "nonfinite_input": "nonfinite",
     "singular": "singular",
     "breakdown": "singular",
-    "stagnation": "diverged",
+    "stagnation": "stalled",
     "conlim": "singular",
 }
 
@@ -127,12 +135,15 @@ def from_root_find(result: optx.RESULTS) -> diffrax.RESULTS:
 
 
 def failure_kind(result) -> str | np.ndarray:
-    """Classify a result as `"ok"`, `"maxiter"`, `"singular"`, `"diverged"`, `"nonfinite"` or
-    `"other"` (a failure that is not a step's nonlinear solve, e.g. diffrax's `max_steps`).
+    """Classify a result by what went wrong, one kind per way of failing.
+
+    `"ok"` (`successful`, `event_occurred`); for a step's nonlinear solve `"maxiter"`,
+    `"stalled"`, `"nonfinite"`, `"singular"`, and `"diverged"` (optimistix's divergence);
+    `"step_size"` (a zero or non-finite step); diffrax's `"max_steps"` (the step budget ran
+    out), `"max_rejected"` and `"dt_min"` (adaptive steps); `"other"` for anything else.
 
     Accepts a `diffrax.RESULTS` or `optimistix.RESULTS` member (e.g. `sol.result`), concrete,
-    not traced. `successful` and `event_occurred` are `"ok"`. A batched result (from `vmap`)
-    gives an array of kinds of the same shape.
+    not traced. A batched result (from `vmap`) gives an array of kinds of the same shape.
     """
     enumeration = getattr(result, "_enumeration", None)
     if enumeration is None or not issubclass(enumeration, optx.RESULTS):
@@ -177,9 +188,17 @@ class StepReport(eqx.Module):
 def describe_failure(sol: diffrax.Solution) -> str | None:
     """One line on a failed solve of `NetworkVI`, or `None` if it succeeded.
 
-    Names the failure, the step where it happened and its residual, read from
-    `sol.solver_state.report` (the solve needs `SaveAt(..., solver_state=True)`; without it
-    the line says so).
+    Names the kind of failure and where it happened, read from `sol.solver_state.report`
+    (the solve needs `SaveAt(..., solver_state=True)`; without it the line says so):
+
+    - a failed step: its interval, the residual where its solve stopped and the tolerance;
+    - a step that could not start because its start state is not finite (at `t0`: `y0` has a
+      NaN or inf): says so, instead of blaming the Lagrangian or the step. This is read from
+      the tolerance of `diffrax_vi`'s root finders, which scales with the start state; an
+      optimistix root finder reports none, so there the line adds that a Lagrangian that is
+      NaN at the start state looks the same;
+    - diffrax's step budget (`max_steps`) or step size controller: how far the solve got
+      (the end of the last accepted step) and what to change.
     """
     kind = failure_kind(sol.result)
     if isinstance(kind, np.ndarray):
@@ -191,8 +210,50 @@ def describe_failure(sol: diffrax.Solution) -> str | None:
     if not isinstance(report, StepReport):
         return f"{kind}: {message} (no step report: solve with SaveAt(solver_state=True))"
     t, h = float(report.t), float(report.h)
+    residual, tolerance = float(report.residual), float(report.tolerance)
+    iterations = int(report.iterations)
+    step = f"[{t:.6g}, {t + h:.6g}] (h = {h:.3g})"
+    if failure_kind(report.result) == "ok":
+        # Not a failed step: diffrax stopped the loop (step budget, step size controller), or
+        # an adaptive controller rejected the failed step and kept the last accepted one.
+        reached = t + h
+        t1 = float(np.asarray(sol.t1))
+        if kind in ("max_steps", "max_rejected"):
+            budget = sol.stats.get("max_steps") if isinstance(sol.stats, dict) else None
+            spent = f"all {int(budget)} steps of max_steps" if budget is not None else "max_steps"
+            return (
+                f"{kind}: the step budget ran out: {spent} were used and the solve stopped at "
+                f"t = {reached:.6g}, short of t1 = {t1:.6g} (the last step, {step}, converged). "
+                "Pass a larger max_steps to diffeqsolve, or take larger steps."
+            )
+        return (
+            f"{kind}: the solve stopped at t = {reached:.6g}, short of t1 = {t1:.6g}; the last "
+            f"accepted step was {step} (residual {residual:.3e}). {message}"
+        )
+    if kind == "nonfinite" and iterations == 0 and not np.isfinite(tolerance) and (
+        np.isinf(tolerance) or np.isnan(residual)
+    ):
+        # The tolerance of diffrax_vi's root finders is ftol·(1 + max(|q|, |p|)) at the start
+        # of the step: it is finite exactly when the start state is.
+        # An optimistix root finder reports no tolerance (NaN) at all: there a NaN residual
+        # before the first iteration may also be a Lagrangian that is NaN at a finite state.
+        start = "the initial state y0" if t == float(np.asarray(sol.t0)) else "its start state"
+        caveat = (
+            ""
+            if np.isinf(tolerance)
+            else " (With an optimistix root finder, which reports no tolerance, a Lagrangian "
+            "that is NaN at the start state looks the same.)"
+        )
+        return (
+            f"{kind}: the step {step} could not start: {start} (q, p) is not finite (NaN or "
+            f"inf). Check y0 = (q, p); the Lagrangian and the step are not at fault.{caveat}"
+        )
+    bound = (
+        f"tolerance {tolerance:.3e}"
+        if np.isfinite(tolerance)
+        else "no tolerance reported by this root finder"
+    )
     return (
-        f"{kind}: step [{t:.6g}, {t + h:.6g}] (h = {h:.3g}) stopped at residual "
-        f"{float(report.residual):.3e} (tolerance {float(report.tolerance):.3e}) after "
-        f"{int(report.iterations)} iterations. {message}"
+        f"{kind}: step {step} stopped at residual {residual:.3e} ({bound}) after "
+        f"{iterations} iterations. {message}"
     )

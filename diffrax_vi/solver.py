@@ -29,6 +29,7 @@ from .interpolation import NetworkInterpolation
 from .lazy import unless_all_skip
 from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
 from .oga import OGA, OGA1d, OGAReference
+from .projection import RoundoffNewton, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport, from_root_find
 from .seeding.fit import (
@@ -202,7 +203,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     refit_residual: float | None = eqx.field(static=True, default=None)
     refit_iterations: int | None = eqx.field(static=True, default=None)
     restart_failed: bool = eqx.field(static=True, default=True)
-    root_finder: optx.AbstractRootFinder = LevenbergMarquardt()
+    root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = eqx.field(static=True, default=100)
     adjoint: optx.AbstractAdjoint = optx.ImplicitAdjoint(
         linear_solver=lx.AutoLinearSolver(well_posed=False)
@@ -212,6 +213,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     iteration_log: int = eqx.field(static=True, default=0)
 
     term_structure: ClassVar = AbstractMechanicalTerm
+
+    def __post_init__(self):
+        if self.root_finder is None:  # the formulation's own default
+            if isinstance(self.formulation, VariableProjection):
+                self.root_finder = RoundoffNewton()
+            else:
+                self.root_finder = LevenbergMarquardt()
 
     def __check_init__(self):
         if not isinstance(self.basis, AbstractBasis):
@@ -276,9 +284,16 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
                 f"{self.error_estimate!r}"
             )
+        if isinstance(self.formulation, VariableProjection):
+            self.formulation.check_basis(self.basis, self.quadrature.num_nodes)
+            if not isinstance(self._root_finder, RoundoffNewton):
+                raise ValueError(
+                    "VariableProjection() solves a square system with an isolated root: use "
+                    f"root_finder=RoundoffNewton() (the default), got {self.root_finder!r}"
+                )
         if (
-            isinstance(self.root_finder, AbstractDampedNewton)
-            and self.root_finder.jacobian == "structured"
+            isinstance(self._root_finder, AbstractDampedNewton)
+            and self._root_finder.jacobian == "structured"
             and not (isinstance(self.formulation, FreeEndpoints) and self.basis.coordinatewise)
         ):
             raise ValueError(
@@ -317,6 +332,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             raise ValueError(
                 f"root_find_max_steps must be a positive integer, got {self.root_find_max_steps!r}"
             )
+
+    @property
+    def _root_finder(self) -> optx.AbstractRootFinder:
+        return self.root_finder
+
+    @property
+    def _companion_root_finder(self) -> optx.AbstractRootFinder:
+        """The root finder of the error estimate's cGVI companion."""
+        if isinstance(self.root_finder, RoundoffNewton):
+            return LevenbergMarquardt()
+        return self.root_finder
 
     @property
     def interpolation_cls(self):  # type: ignore[override]
@@ -358,7 +384,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """Whether the fresh seed fit is left to the root finder: where the seed may be carried
         over from the previous step, the fit is the root finder's fallback, evaluated (once in
         the compiled step) where the carried seed is unusable or its solve fails."""
-        return isinstance(self.root_finder, AbstractDampedNewton) and (
+        return isinstance(self._root_finder, AbstractDampedNewton) and (
             isinstance(self.initial_trajectory, PreviousStep) or self._refits()
         )
 
@@ -525,12 +551,54 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
         carried = warm_used | refitted
 
+        if isinstance(self.formulation, VariableProjection):
+            theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(seed, ctx)
+            restarted = jnp.array(False)
+        else:
+            theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_all(
+                seed, ctx, cold_inputs, carried, fit_inputs, lazy
+            )
+        q1 = q1.astype(ctx.q0.dtype)
+        p1 = p1.astype(ctx.p0.dtype)
+        return self._finish_step(
+            ctx, state, theta, q1, p1, n, result, residual, tolerance, restarted,
+            warm_used, refitted,
+        )
+
+    def _solve_projected(self, seed, ctx: StepContext):
+        """The step's equations on the seed's feature span (`VariableProjection`)."""
+        form = self.formulation
+        theta_seed, p1_seed = seed
+        span = form.span(theta_seed, ctx)
+        z0 = jax.lax.stop_gradient((form.reduce(theta_seed, span), p1_seed))
+        scale = _residual_scale(ctx)
+        sol = optx.root_find(
+            form.reduced_residual,
+            self._root_finder,
+            z0,
+            (ctx, span),
+            options=dict(scale=scale, jacobian=form.reduced_jacobian),
+            max_steps=self.root_find_max_steps,
+            adjoint=self.adjoint,
+            throw=False,
+        )
+        z = sol.value
+        theta = form.expand(z[0], span)
+        q1, p1 = form.projected_end_state(z, span)
+        residual = jax.lax.stop_gradient(jnp.max(jnp.abs(sol.state.f)).astype(ctx.q0.dtype))
+        eps = float(jnp.finfo(ctx.q0.dtype).eps)
+        tolerance = (self._root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
+        n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
+        return theta, (q1, p1), n, from_root_find(sol.result), residual, tolerance
+
+    def _solve_all(self, seed, ctx: StepContext, cold_inputs, carried, fit_inputs, lazy):
+        """The step's equations in all the ansatz parameters (the reference's solve)."""
         # The fresh trajectory fit, whose inputs travel in the root find's `args`, is the
         # root finder's fallback: it starts there where the carried seed (warm start or
         # refitted neurons) is unusable, and restarts there once where the solve from the
         # carried seed fails (`restart_failed`).
         restart_inputs = jax.lax.stop_gradient(cold_inputs)
-        jacobian = _jacobian_option(self.root_finder, self.formulation, ctx)
+        jacobian = _jacobian_option(self._root_finder, self.formulation, ctx)
         options = dict(
             scale=_residual_scale(ctx),
             outputs=lambda x: self.formulation.end_state(x, ctx),
@@ -545,7 +613,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             seed = jax.tree_util.tree_map(lambda v: jnp.where(carried, v, 0), seed)
         sol = optx.root_find(
             lambda x, a: self.formulation.residual(x, a[0]),
-            self.root_finder,
+            self._root_finder,
             seed,
             (ctx, restart_inputs, carried, fit_inputs if lazy else None),
             options=options,
@@ -554,11 +622,19 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             throw=False,
         )
         x = sol.value
-        theta = x[0]
-        q1, p1 = self.formulation.end_state(x, ctx)
-        q1 = q1.astype(ctx.q0.dtype)
-        p1 = p1.astype(ctx.p0.dtype)
-        result = from_root_find(sol.result)
+        residual, tolerance = self._final_residual(sol, ctx)
+        n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
+        restarted = jnp.asarray(getattr(sol.state, "restarted", False))
+        return (
+            x[0], self.formulation.end_state(x, ctx), n, from_root_find(sol.result), residual,
+            tolerance, restarted,
+        )
+
+    def _finish_step(
+        self, ctx, state, theta, q1, p1, n, result, residual, tolerance, restarted,
+        warm_used, refitted,
+    ):
+        """Failure results, dense output, the new solver state."""
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         result = diffrax.RESULTS.where(
             finite | (result != diffrax.RESULTS.successful),
@@ -574,7 +650,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         nan = jnp.asarray(jnp.nan, ctx.q0.dtype)
         q1 = jnp.where(failed, nan, q1)
         p1 = jnp.where(failed, nan, p1)
-        residual, tolerance = self._final_residual(sol, ctx)
 
         def curve(tau):
             return self.formulation.position(ctx.basis, theta, ctx.q0, q1, tau)
@@ -598,7 +673,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # Only Hermite extrapolation reads the previous step's ends; skip the work otherwise.
         history = _history(ctx, curve, q1) if self._uses_history() else state.history
 
-        n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
         new_state = NetworkVIState(
             theta=theta,
             fresh=jnp.array(False),
@@ -611,8 +685,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             histogram=state.histogram.at[jnp.minimum(n, self.root_find_max_steps)].add(1),
             warm_starts=state.warm_starts + warm_used.astype(jnp.int32),
             refits=state.refits + refitted.astype(jnp.int32),
-            restarts=state.restarts
-            + jnp.asarray(getattr(sol.state, "restarted", False)).astype(jnp.int32),
+            restarts=state.restarts + restarted.astype(jnp.int32),
             iteration_log=(
                 state.iteration_log.at[state.steps].set(n, mode="drop")
                 if self.iteration_log
@@ -636,9 +709,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def _final_residual(self, sol, ctx: StepContext) -> tuple[Array, Array]:
         """`max|F|` where the step's solve stopped, and the residual it needed to reach."""
         dtype = ctx.q0.dtype
-        if isinstance(self.root_finder, AbstractDampedNewton):
+        if isinstance(self._root_finder, AbstractDampedNewton):
             f = sol.state.f
-            ftol = self.root_finder._tols(dtype)["ftol"]
+            ftol = self._root_finder._tols(dtype)["ftol"]
             tolerance = (ftol * _residual_scale(ctx)).astype(dtype)
         else:
             f = ravel_pytree(self.formulation.residual(sol.value, ctx))[0]
@@ -659,12 +732,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         form = FreeEndpoints()
         sol = optx.root_find(
             lambda x, c: form.residual(x, c),
-            self.root_finder,
+            self._companion_root_finder,
             seed,
             companion,
             options=dict(
                 scale=_residual_scale(ctx), outputs=lambda x: form.end_state(x, companion),
-                jacobian=_jacobian_option(self.root_finder, form, companion),
+                jacobian=_jacobian_option(self._companion_root_finder, form, companion),
             ),
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,

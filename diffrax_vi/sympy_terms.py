@@ -24,6 +24,7 @@ from jaxtyping import Array, PyTree
 from .linalg import solve
 from .symbolic import compile_exprs
 from .terms import LagrangianTerm
+from .validation import check_state
 
 __all__ = ["SympyLagrangianTerm", "sympy_lagrangian_term"]
 
@@ -161,6 +162,16 @@ class SympyLagrangianTerm(LagrangianTerm):
     def dim(self) -> int:
         """The number of coordinates `D`."""
         return self.lagrangian.dim
+
+    def check_state(self, y: Any) -> tuple[Array, Array]:
+        """The checks of every term, and that `q` has one entry per coordinate symbol."""
+        q, p = check_state(y)
+        if q.shape[0] != self.dim:
+            raise ValueError(
+                f"this Lagrangian has {self.dim} coordinates {list(map(str, self.coordinates))}, "
+                f"so y0 = (q, p) needs arrays of shape ({self.dim},); got {q.shape[0]} entries"
+            )
+        return q, p
 
     def _inputs(self, t, q, v, args):
         return self.lagrangian.inputs(t, q, v, args)

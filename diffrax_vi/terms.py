@@ -21,6 +21,7 @@ import jax.tree_util as jtu
 from jaxtyping import Array, ArrayLike, PyTree
 
 from .linalg import solve
+from .validation import check_state, check_times
 
 __all__ = ["AbstractMechanicalTerm", "LagrangianTerm", "IODETerm", "unwrap_term"]
 
@@ -44,14 +45,41 @@ class AbstractMechanicalTerm(diffrax.AbstractTerm):
         return self.momentum_and_force(t, q, v, args)[1]
 
     def velocity(self, t, q, p, args) -> Array:
+        """The inverse Legendre map `v(t, q, p)`: the velocity at which `∂L/∂v = p`."""
         raise NotImplementedError
 
     def energy(self, t, q, p, args) -> Array:
         raise NotImplementedError
 
+    def check_state(self, y: Any) -> tuple[Array, Array]:
+        """Return `(q, p)` if `y` is a state this term can integrate, else raise `ValueError`.
+
+        The state is `y = (q, p)`: a tuple of two 1-D real floating arrays of one shape and
+        dtype. Only static properties are checked, so it is free under `jit`.
+        """
+        return check_state(y)
+
+    def state_from_velocity(
+        self, t0: ArrayLike, q0: ArrayLike, v0: ArrayLike, args: PyTree = None
+    ) -> tuple[Array, Array]:
+        """The initial state `(q0, p0)` for positions `q0` and velocities `v0` at time `t0`.
+
+        The state of every solver here is `(q, p)` with the canonical momentum
+        `p = ∂L/∂v(t0, q0, v0)`, which differs from the velocity as soon as the kinetic
+        energy has a mass matrix or the Lagrangian has terms linear in `v` (a magnetic field).
+        This evaluates that momentum, so a problem stated with velocities starts correctly.
+        `q0` and `v0` must be 1-D real floating arrays of one shape and dtype.
+        """
+        check_times(t0=t0)
+        q0, v0 = check_state((q0, v0), what="(q0, v0)")
+        p0 = jnp.asarray(self.momentum(t0, q0, v0, args))
+        return q0, p0.astype(q0.dtype)
+
     # -- diffrax.AbstractTerm interface: Hamilton's equations ---------------------------------
     def vf(self, t, y, args):
-        q, p = _split_state(y)
+        # diffrax evaluates `vf` on `y0` before any solver sees it: refuse a malformed state
+        # here, with the message that names the expected form, not a JAX error further in.
+        q, p = self.check_state(y)
         v = self.velocity(t, q, p, args)
         return v.astype(q.dtype), self.force(t, q, v, args).astype(p.dtype)
 
@@ -101,15 +129,6 @@ class AbstractMechanicalTerm(diffrax.AbstractTerm):
         if y0 is not None:
             _check_separable(self, y0, args, t0)
         return diffrax.ODETerm(_SeparableVelocity(self)), diffrax.ODETerm(_SeparableForce(self))
-
-
-def _split_state(y) -> tuple[Array, Array]:
-    if not (isinstance(y, tuple | list) and len(y) == 2):
-        raise ValueError(
-            "the state of a mechanical term must be a pair (q, p) of arrays; got "
-            f"{type(y).__name__}"
-        )
-    return y[0], y[1]
 
 
 def _check_scalar(value, what: str, dtype) -> Array:
@@ -335,10 +354,7 @@ class _SeparableForce(eqx.Module):
 
 
 def _check_separable(term: AbstractMechanicalTerm, y0, args, t0) -> None:
-    q0, p0 = _split_state(y0)
-    q0, p0 = jnp.asarray(q0), jnp.asarray(p0)
-    if q0.shape != p0.shape:
-        raise ValueError(f"q and p must have the same shape; got {q0.shape} and {p0.shape}")
+    q0, p0 = term.check_state(y0)
 
     def mixed(t, q, p, args):
         v = term.velocity(t, q, p, args)

@@ -226,7 +226,7 @@ def test_constructor_validation():
 
 def test_state_must_be_a_pair():
     term = LagrangianTerm(lagrangian)
-    with pytest.raises(ValueError, match=r"pair \(q, p\)"):
+    with pytest.raises(ValueError, match=r"y0 = \(q, p\) must be a pair"):
         term.vf(0.0, jnp.zeros(4), None)
 
 

@@ -57,7 +57,7 @@ def test_zero_or_nan_dt0(dt0):
     # be cached); `throw=True` raises with its message.
     sol = solve(dt0=jnp.asarray(dt0), throw=False, max_steps=8)
     assert sol.result == diffrax.RESULTS.vi_step_size_invalid
-    assert dvi.failure_kind(sol.result) == "other"
+    assert dvi.failure_kind(sol.result) == "step_size"
     assert bool(jnp.all(jnp.isnan(sol.ys[0])))
     with pytest.raises(Exception, match="step size must be finite and non-zero"):
         solve(dt0=jnp.asarray(dt0), max_steps=8).ys[0].block_until_ready()

@@ -1,0 +1,136 @@
+"""The variable-projection step against the all-parameter step and CGVI, side by side.
+
+Per fixture and formulation: the diffrax result, the largest error of q over the saved times
+relative to the amplitude, median and largest nonlinear iterations per step, the last step's
+residual, and (for the timed fixture) milliseconds per run and per step after compiling
+(median of `--repeats`). The vmap row solves four oscillators (amplitudes 0.3, 0.5, 0.7, 0.9)
+under `jax.vmap` and as a loop of single solves and prints their largest difference.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/projection.py [--repeats 3] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax  # noqa: E402
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import diffrax_vi as dvi  # noqa: E402
+from diffrax_vi import problems  # noqa: E402
+from diffrax_vi.activations import activation_name  # noqa: E402
+
+FORMULATIONS = {"projection": dvi.VariableProjection, "all-parameter": dvi.FreeEndpoints}
+
+
+def network(activation, width, nodes, formulation):
+    return dvi.NetworkVI(
+        dvi.ShallowNetBasis(activation, width), dvi.GaussLegendre(nodes), formulation=formulation
+    )
+
+
+def compiled(problem, solver):
+    ts = jnp.asarray(problem.ts)
+    saveat = diffrax.SaveAt(ts=ts, solver_state=True)
+    return eqx.filter_jit(
+        lambda y0: diffrax.diffeqsolve(
+            problem.term, solver, problem.t0, problem.t1, problem.dt, y0, args=problem.args,
+            saveat=saveat, max_steps=100_000,
+        )
+    )
+
+
+def max_error(problem, sol) -> float:
+    q_ref, _ = problem.reference(np.asarray(sol.ts))
+    q = np.asarray(sol.ys[0])
+    return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
+
+
+def iterations(sol) -> tuple[int, int]:
+    hist = np.asarray(sol.solver_state.histogram)
+    cum = np.cumsum(hist)
+    return int(np.searchsorted(cum, cum[-1] / 2)), int(sol.solver_state.max_iterations)
+
+
+def fixtures(quick: bool):
+    rows = [
+        ("oscillator h=0.1", problems.harmonic_oscillator(), dvi.tanh, 10, 8),
+        ("oscillator h=0.1", problems.harmonic_oscillator(), dvi.tanh, 12, 10),
+        ("double pendulum h=0.1", problems.double_pendulum(t1=1.0, dt=0.1), dvi.tanh, 10, 16),
+        ("pendulum (IODE) h=0.1", problems.pendulum(), dvi.gelu, 8, 8),
+    ]
+    return rows[:1] if quick else rows
+
+
+def run(args) -> None:
+    print("| fixture | network | formulation | result | max error | iterations (median/max) "
+          "| residual |")
+    print("|---|---|---|---|---|---|---|")
+    for label, problem, activation, width, nodes in fixtures(args.quick):
+        for name, form in FORMULATIONS.items():
+            sol = compiled(problem, network(activation, width, nodes, form()))(problem.y0)
+            med, most = iterations(sol)
+            ok = "ok" if sol.result == diffrax.RESULTS.successful else "failed"
+            print(f"| {label} | {activation_name(activation)} {width}, GL{nodes} | {name} | "
+                  f"{ok} | {max_error(problem, sol):.2e} | {med}/{most} | "
+                  f"{float(sol.solver_state.report.residual):.1e} |")
+
+    print("\nvmap of four oscillators against the loop of single solves (tanh 10, GL8):")
+    problem = problems.harmonic_oscillator()
+    amplitudes = [0.3, 0.5, 0.7, 0.9]
+    for name, form in FORMULATIONS.items():
+        solve = compiled(problem, network(dvi.tanh, 10, 8, form()))
+        loop = np.stack([np.asarray(solve((jnp.array([a]), jnp.zeros(1))).ys[0])
+                         for a in amplitudes])
+        batched = jax.vmap(lambda a, f=solve: f((a[None], jnp.zeros(1))).ys[0])
+        vm = np.asarray(batched(jnp.array(amplitudes)))
+        print(f"- {name}: max |vmap - loop| = {np.abs(vm - loop).max():.1e}")
+
+    steps = 20 if args.quick else 200
+    problem = problems.harmonic_oscillator().with_span(n_steps=steps, dt=0.5)
+    print(f"\noscillator h = 0.5, {steps} steps (tanh 10, GL8; CGVI(7) with GL8), "
+          f"median of {args.repeats} runs after compiling:")
+    print("| solver | max error | iterations (median) | compile + first run (s) | ms per run "
+          "| us per step | time / CGVI(7) |")
+    print("|---|---|---|---|---|---|---|")
+    solvers = {name: network(dvi.tanh, 10, 8, form()) for name, form in FORMULATIONS.items()}
+    solvers["CGVI(7)"] = dvi.CGVI(7, dvi.GaussLegendre(8))
+    results = {}
+    for name, solver in solvers.items():
+        start = time.perf_counter()
+        solve = compiled(problem, solver)
+        sol = jax.block_until_ready(solve(problem.y0))
+        first = time.perf_counter() - start
+        results[name] = (solve, sol, first, [])
+    for _ in range(args.repeats):  # interleaved, so that a load falls on all alike
+        for solve, _, _, times in results.values():
+            start = time.perf_counter()
+            jax.block_until_ready(solve(problem.y0).ys)
+            times.append(time.perf_counter() - start)
+    base = statistics.median(results["CGVI(7)"][3])
+    for name, (_, sol, first, times) in results.items():
+        med = statistics.median(times)
+        print(f"| {name} | {max_error(problem, sol):.2e} | {iterations(sol)[0]} | {first:.1f} | "
+              f"{med * 1e3:.1f} | {med / steps * 1e6:.0f} | {med / base:.1f} |")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="one fixture, 20 timed steps")
+    args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error("--repeats must be at least 1")
+    run(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,220 @@
+"""VariableProjection and RoundoffNewton: the well-posed network step."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffrax_vi as dvi
+from diffrax_vi import problems
+from diffrax_vi.formulation import StepContext
+
+
+def projected(activation, width, nodes, **kwargs):
+    return dvi.NetworkVI(
+        dvi.ShallowNetBasis(activation, width),
+        dvi.GaussLegendre(nodes),
+        formulation=dvi.VariableProjection(**kwargs),
+    )
+
+
+def solve(problem, solver, y0=None, **kwargs):
+    ts = jnp.asarray(problem.ts)
+    run = eqx.filter_jit(
+        lambda y: diffrax.diffeqsolve(
+            problem.term, solver, problem.t0, problem.t1, problem.dt, y, args=problem.args,
+            saveat=diffrax.SaveAt(ts=ts, solver_state=True), **kwargs,
+        )
+    )
+    return run(problem.y0 if y0 is None else y0)
+
+
+def max_relative_error(problem, sol):
+    q_ref, _ = problem.reference(np.asarray(sol.ts))
+    q = np.asarray(sol.ys[0], dtype=np.float64)
+    return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
+
+
+def residual_scale(y0):
+    q, p = y0
+    return 1 + max(float(jnp.max(jnp.abs(q))), float(jnp.max(jnp.abs(p))))
+
+
+def test_oscillator_to_round_off_in_one_iteration():
+    # A quadratic Lagrangian makes the projected equations linear: one Newton update solves
+    # them, and the residual left is rounding.
+    problem = problems.harmonic_oscillator()
+    sol = solve(problem, projected(dvi.tanh, 12, 10))
+    assert sol.result == diffrax.RESULTS.successful
+    assert max_relative_error(problem, sol) <= 1e-13
+    state = sol.solver_state
+    assert int(state.max_iterations) == 1
+    eps = float(jnp.finfo(jnp.float64).eps)
+    assert float(state.report.residual) <= 64 * eps * residual_scale(problem.y0)
+
+
+def test_double_pendulum_in_few_iterations():
+    problem = problems.double_pendulum(t1=1.0, dt=0.1)
+    sol = solve(problem, projected(dvi.tanh, 10, 16))
+    assert sol.result == diffrax.RESULTS.successful
+    assert max_relative_error(problem, sol) <= 1e-11
+    hist = np.asarray(sol.solver_state.histogram)
+    median = int(np.searchsorted(np.cumsum(hist), hist.sum() / 2))
+    assert median <= 3
+    assert int(sol.solver_state.max_iterations) <= 4
+
+
+def test_converged_parameters_are_the_curve():
+    # The output weights expanded from the span coordinates give a network whose end value is
+    # the step's q_{n+1}: dense output and the next step's seed read a network again.
+    problem = problems.double_pendulum(t1=0.2, dt=0.1)
+    solver = projected(dvi.tanh, 10, 16)
+    sol = solve(problem, solver)
+    theta = sol.solver_state.theta
+    q_end = solver.basis.evaluate(theta, jnp.ones(()))
+    np.testing.assert_allclose(q_end, sol.ys[0][-1], rtol=0, atol=1e-12)
+
+
+def test_dense_output_inside_a_step():
+    problem = problems.harmonic_oscillator()
+    solver = projected(dvi.tanh, 12, 10)
+    sol = diffrax.diffeqsolve(
+        problem.term, solver, problem.t0, problem.t1, problem.dt, problem.y0,
+        saveat=diffrax.SaveAt(dense=True),
+    )
+    q_ref, _ = problem.reference(np.array([0.35]))
+    q, _ = sol.evaluate(0.35)
+    assert abs(float(q[0]) - q_ref[0, 0]) <= 1e-9
+
+
+def _context(problem, solver, theta_like_width=10):
+    q0, p0 = problem.y0
+    ctx = solver._context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+    key = jax.random.PRNGKey(0)
+    theta = jax.random.normal(key, (3 * theta_like_width, q0.shape[0]), dtype=q0.dtype)
+    return ctx, theta
+
+
+def test_closed_form_jacobian_matches_autodiff():
+    problem = problems.double_pendulum()
+    solver = projected(dvi.tanh, 10, 16)
+    ctx, theta = _context(problem, solver)
+    assert isinstance(ctx, StepContext)
+    form = solver.formulation
+    span = form.span(theta, ctx)
+    z = (form.reduce(theta, span), problem.y0[1] + 0.1)
+    flat, unravel = jax.flatten_util.ravel_pytree(z)
+
+    def residual(v):
+        return jax.flatten_util.ravel_pytree(form.reduced_residual(unravel(v), (ctx, span)))[0]
+
+    expected = jax.jacfwd(residual)(flat)
+    np.testing.assert_allclose(form.reduced_jacobian(z, (ctx, span)), expected, atol=1e-12)
+
+
+def test_span_is_orthonormal_in_the_quadrature_norm():
+    problem = problems.double_pendulum()
+    solver = projected(dvi.tanh, 10, 16)
+    ctx, theta = _context(problem, solver)
+    span = solver.formulation.span(theta, ctx)
+    root_b = jnp.sqrt(ctx.weights)[None, :, None]
+    data = jnp.concatenate(
+        [root_b * span.gq, root_b * span.gv, span.g0[:, None], span.g1[:, None]], axis=1
+    )
+    gram = jnp.einsum("dik,dil->dkl", data, data)
+    live = span.live.T  # (D, k)
+    expected = jnp.where(live[:, :, None] & live[:, None, :], jnp.eye(gram.shape[-1]), 0)
+    np.testing.assert_allclose(gram * expected, expected, atol=1e-12)
+    # the expansion reproduces the span directions through the network's own features
+    c = jnp.where(span.live, 1.0, 0.0)
+    theta_c = solver.formulation.expand(c, span)
+    q_nodes = jax.vmap(solver.basis.evaluate, in_axes=(None, 0))(theta_c, ctx.nodes)
+    np.testing.assert_allclose(q_nodes, jnp.einsum("djk,kd->jd", span.gq, c), atol=1e-8)
+
+
+def test_vmap_matches_loop_on_the_double_pendulum():
+    problem = problems.double_pendulum(t1=0.5, dt=0.1)
+    solver = projected(dvi.tanh, 10, 16)
+    run = eqx.filter_jit(
+        lambda y: diffrax.diffeqsolve(
+            problem.term, solver, problem.t0, problem.t1, problem.dt, y, args=problem.args,
+        ).ys[0][-1]
+    )
+    q0, p0 = problem.y0
+    starts = jnp.stack([q0 * s for s in (0.9, 1.0, 1.1)])
+    loop = np.stack([np.asarray(run((q, p0))) for q in starts])
+    batched = np.asarray(jax.vmap(lambda q: run((q, p0)))(starts))
+    assert np.all(np.isfinite(batched))
+    np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-12)
+
+
+def test_gradient_through_projected_steps():
+    # d q(T) / d q0 of the oscillator is cos(T); implicit differentiation of each projected
+    # step's square system gives it.
+    term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 0.5 * q @ q)
+    solver = projected(dvi.tanh, 12, 10)
+
+    def end(q0):
+        sol = diffrax.diffeqsolve(term, solver, 0.0, 0.5, 0.1, (q0, jnp.zeros(1)))
+        return sol.ys[0][-1, 0]
+
+    grad = jax.grad(end)(jnp.array([0.5]))
+    assert abs(float(grad[0]) - np.cos(0.5)) <= 1e-10
+
+
+def test_float32_stays_float32():
+    problem = problems.harmonic_oscillator(dtype=jnp.float32)
+    solver = projected(dvi.tanh, 10, 8)
+    sol = diffrax.diffeqsolve(
+        problem.term, solver, jnp.float32(0), jnp.float32(1), jnp.float32(0.1),
+        problem.y0, args=problem.args,
+    )
+    assert sol.ys[0].dtype == jnp.float32
+    assert sol.result == diffrax.RESULTS.successful
+    q_ref, _ = problem.reference(np.array([1.0]))
+    assert abs(float(sol.ys[0][-1, 0]) - q_ref[0, 0]) <= 1e-5
+
+
+def test_non_finite_step_fails():
+    # The force blows up at q = 0, which the motion crosses: the step must fail, never return
+    # NaN as a success.
+    term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - jnp.sum(jnp.log(q)))
+    solver = projected(dvi.tanh, 10, 8)
+    sol = diffrax.diffeqsolve(
+        term, solver, 0.0, 1.0, 0.5, (jnp.array([0.05]), jnp.array([-3.0])), throw=False
+    )
+    finite = bool(np.all(np.isfinite(np.asarray(sol.ys[0]))))
+    assert sol.result != diffrax.RESULTS.successful or finite
+
+
+def test_refusals():
+    with pytest.raises(ValueError, match="ShallowNetBasis without mirrored pairs"):
+        dvi.NetworkVI(
+            dvi.DenseNetBasis(dvi.tanh, 4, 4), formulation=dvi.VariableProjection(),
+            initial_guess=dvi.LSGD(),
+        )
+    with pytest.raises(ValueError, match="ShallowNetBasis without mirrored pairs"):
+        dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, 10, symmetry=dvi.MirrorPairs()),
+            formulation=dvi.VariableProjection(),
+        )
+    with pytest.raises(ValueError, match="exceeds the network's width"):
+        projected(dvi.tanh, 6, 8, rank=7)
+    with pytest.raises(ValueError, match="RoundoffNewton"):
+        dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, 10), formulation=dvi.VariableProjection(),
+            root_finder=dvi.LevenbergMarquardt(),
+        )
+    with pytest.raises(ValueError, match="rank"):
+        dvi.VariableProjection(rank=0)
+    with pytest.raises(ValueError, match="rtol"):
+        dvi.VariableProjection(rtol=2.0)
+
+
+def test_default_root_finder_follows_the_formulation():
+    basis = dvi.ShallowNetBasis(dvi.tanh, 10)
+    assert isinstance(dvi.NetworkVI(basis).root_finder, dvi.LevenbergMarquardt)
+    solver = dvi.NetworkVI(basis, formulation=dvi.VariableProjection())
+    assert isinstance(solver.root_finder, dvi.RoundoffNewton)
