@@ -476,12 +476,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
+        from .validation import check_times
+
+        # Concrete times (manual stepping, or `jax.disable_jit`) are checked at trace time.
+        # Inside `diffeqsolve` they are traced by now, and a run-time refusal here would be a
+        # host callback in the program (never written to JAX's persistent compilation cache).
+        # `step` fails a zero or NaN step with `RESULTS.vi_step_size_invalid` instead; a NaN
+        # `t0` or `t1` makes diffrax take no step at all (see the failures page).
+        check_times(t0=t0, t1=t1)
         ctx = self._context(terms, t0, t1, y0, args)
-        # A zero or NaN step (from `dt0`, `t0` or `t1`) is not refused here by a run-time
-        # check: that would be a host callback in the program, and a program with one is
-        # never written to JAX's persistent compilation cache. `step` fails such a step
-        # with `RESULTS.vi_step_size_invalid` instead (diffrax itself refuses a `dt0` of the
-        # wrong sign).
         # The first step seeds itself (`fresh`): computing its seed here would put a second
         # copy of the seed fit into the compiled program.
         theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
@@ -806,19 +809,7 @@ def _residual_scale(ctx: StepContext) -> Array:
 
 
 def _check_state(y0: Any) -> tuple[Array, Array]:
-    if not (isinstance(y0, tuple | list) and len(y0) == 2):
-        raise ValueError(
-            f"NetworkVI integrates states y = (q, p), a pair of 1-D arrays; got {type(y0).__name__}"
-        )
-    q0, p0 = jnp.asarray(y0[0]), jnp.asarray(y0[1])
-    if q0.ndim != 1 or q0.shape != p0.shape:
-        raise ValueError(
-            "y0 = (q, p) must be two 1-D arrays of the same shape; got shapes "
-            f"{q0.shape} and {p0.shape}"
-        )
-    if q0.dtype != p0.dtype or not jnp.issubdtype(q0.dtype, jnp.floating):
-        raise ValueError(
-            f"q and p must share one floating dtype (the working precision); got {q0.dtype} "
-            f"and {p0.dtype}"
-        )
-    return q0, p0
+    """`(q0, p0)` of a valid state; the one check shared with the terms' `vf`."""
+    from .validation import check_state  # imported here: this function is its only user
+
+    return check_state(y0)
