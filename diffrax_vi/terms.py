@@ -310,6 +310,8 @@ class IODETerm(AbstractMechanicalTerm):
         return p, f
 
     def velocity(self, t, q, p, args):
+        """The given velocity map `v(t, q, p, args)`; without one, an error at run time (a
+        degenerate system has no velocity map: only `NetworkVI` can integrate it)."""
         if self.velocity_map is None:
             # diffeqsolve traces `vf` once for its shapes before any solver runs, so a missing
             # velocity map must not fail at trace time (NetworkVI never evaluates it). The

@@ -161,8 +161,13 @@ def test_what_a_nan_time_does_inside_diffeqsolve():
     for t0, t1 in ((nan, jnp.asarray(0.2)), (jnp.asarray(0.0), nan)):
         sol = diffrax.diffeqsolve(TERM, cgvi(), t0, t1, jnp.asarray(0.1), (Q, P), throw=False)
         assert int(sol.stats["num_steps"]) == 0 and sol.result == diffrax.RESULTS.successful
-    sol = diffrax.diffeqsolve(TERM, cgvi(), 0.0, 0.2, nan, (Q, P), throw=False)
-    assert dvi.failure_kind(sol.result) == "step_size"
+    inf = jnp.asarray(jnp.inf)
+    for t0, t1, dt0 in ((0.0, 0.2, nan), (-inf, 0.2, 0.1), (inf, 0.2, -0.1)):
+        sol = diffrax.diffeqsolve(TERM, cgvi(), t0, t1, dt0, (Q, P), throw=False)
+        assert dvi.failure_kind(sol.result) == "step_size"
+    # An infinite dt0 is clipped by ConstantStepSize to one step over [t0, t1].
+    sol = diffrax.diffeqsolve(TERM, cgvi(), 0.0, 0.2, inf, (Q, P), throw=False)
+    assert int(sol.stats["num_steps"]) == 1 and sol.result == diffrax.RESULTS.successful
 
 
 # -- failure reports -------------------------------------------------------------------------
@@ -233,3 +238,42 @@ def test_state_from_velocity_refuses_bad_input():
         TERM.state_from_velocity(0.0, Q, jnp.zeros(2))
     with pytest.raises(ValueError, match="t0 must be a finite time"):
         TERM.state_from_velocity(float("nan"), Q, P)
+
+
+# -- what the docs promise ---------------------------------------------------------------------
+def test_the_precision_table_of_the_docs():
+    """docs/how-to/precision.md: with x64 on, diffrax promotes a float32 y0 to the dtype of
+    the times, and Python-number times alone are float64."""
+    y0 = (Q.astype(jnp.float32), P.astype(jnp.float32))
+    f32 = jnp.float32
+    ts64, ts32 = jnp.linspace(0.0, 0.2, 3), jnp.linspace(0.0, 0.2, 3, dtype=f32)
+    cases = [
+        ((0.0, 0.2, 0.1), None, jnp.float64),
+        ((f32(0.0), f32(0.2), 0.1), None, jnp.float32),
+        ((f32(0.0), f32(0.2), f32(0.1)), ts64, jnp.float64),
+        ((f32(0.0), f32(0.2), f32(0.1)), ts32, jnp.float32),
+    ]
+    for times, ts, dtype in cases:
+        saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
+        sol = diffrax.diffeqsolve(TERM, cgvi(), *times, y0, saveat=saveat)
+        assert sol.ys[0].dtype == sol.ys[1].dtype == dtype
+
+
+def test_the_adjoint_table_of_the_gradients_page():
+    def final(q0, adjoint):
+        sol = diffrax.diffeqsolve(
+            TERM, cgvi(), 0.0, 0.3, 0.1, (q0, P), adjoint=adjoint,
+            saveat=diffrax.SaveAt(t1=True),
+        )  # fmt: skip
+        return sol.ys[0][-1, 0]
+
+    exact = np.cos(np.sqrt(0.5) * 0.3)  # d q(t) / d q0 of the oscillator
+    for adjoint in (diffrax.DirectAdjoint(), diffrax.ForwardMode()):
+        _, tangent = jax.jvp(lambda q: final(q, adjoint), (Q,), (jnp.ones(1),))
+        assert abs(float(tangent) - exact) < 1e-4  # a degree-2 cGVI at h = 0.1
+    with pytest.raises(TypeError, match="forward-mode autodiff"):
+        jax.jvp(lambda q: final(q, diffrax.RecursiveCheckpointAdjoint()), (Q,), (jnp.ones(1),))
+    # diffrax's TermAndSolverIncompatible (a ValueError, not exported): the adjoint term is not
+    # a mechanical term.
+    with pytest.raises(ValueError, match="Terms are not compatible with solver"):
+        jax.grad(lambda q: final(q, diffrax.BacksolveAdjoint()))(Q)
