@@ -330,6 +330,7 @@ class IODETerm(AbstractMechanicalTerm):
         return self.velocity_map(t, q, p, args)
 
     def energy(self, t, q, p, args):
+        """`H(t, q, p, args)` from the `hamiltonian` the term was built with."""
         if self.hamiltonian is None:
             raise ValueError("this IODETerm was built without a hamiltonian=H(t, q, p, args)")
         return self.hamiltonian(t, q, p, args)
