@@ -629,3 +629,26 @@ def test_floor_acceptance_script_solves_a_fixture_and_refuses_bad_settings(capsy
         with pytest.raises(SystemExit, match=message):
             module.main(argv)
     assert nonlinear.default_tolerances is original
+
+
+def test_step_structure_script_reports_the_three_spectra(tmp_path, capsys):
+    """benchmarks/step_structure.py --tiny: one converged oscillator step (tanh 6, GL8) with the
+    ranks of the tangent data (18 x 18), the step Jacobian (19 x 19) and the hidden features
+    (18 x 6) written to --out; a refused combination gets its row without a solve."""
+    module = benchmark_script("step_structure")
+    out = tmp_path / "structure.txt"
+    module.main(["--tiny", "--out", str(out)])
+    module.main(["--tiny", "--widths", "16", "--nodes", "4", "--out", str(out), "--append"])
+    capsys.readouterr()
+    rows = [[c.strip() for c in line.split("|")[1:-1]]
+            for line in out.read_text().splitlines() if line.startswith("| ho0.1 |")]
+    (ok, refused) = rows
+    assert ok[:5] == ["ho0.1", "tanh", "6", "8", "ok"] and 1 <= int(ok[5]) <= 50
+    assert ok[7] == "18x18" and ok[12] == "19" and ok[16] == "18x6"
+    a8, a13, b8, b13 = int(ok[8]), int(ok[9]), int(ok[13]), int(ok[14])
+    assert 0 < a8 <= a13 <= 18 and 0 < b8 <= b13 <= 19
+    # measured: the six hidden features are independent at 1e-11 (ranks 6, 6, 6)
+    assert [int(x) for x in ok[17:20]] == [6, 6, 6] and ok[20] == "yes"
+    assert refused[4] == "refused" and set(refused[5:]) == {"–"}
+    with pytest.raises(SystemExit):
+        module.main(["--tiny", "--activations", "relu", "--out", "-"])
