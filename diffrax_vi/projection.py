@@ -36,7 +36,7 @@ from jaxtyping import Array
 
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
-from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces
+from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
 from .linalg import solve
 
 __all__ = ["VariableProjection", "ProjectedSpan", "RoundoffNewton"]
@@ -80,16 +80,22 @@ class VariableProjection(FreeEndpoints):
     - `rtol`: a direction whose singular value is below `rtol` times the largest is taken as
       absent and its coefficient pinned to zero. Default `None`: `sqrt(eps)` of the working
       dtype.
+    - `reuse_hidden`: keep the hidden layer of the first step's seed for all later steps
+      (each step solves on its span, starting from the previous curve continued) instead of
+      fitting a seed on every step. Default `False`.
     """
 
     rank: int | None = eqx.field(static=True, default=None)
     rtol: float | None = eqx.field(static=True, default=None)
+    reuse_hidden: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.rank is not None and (
             not isinstance(self.rank, int) or isinstance(self.rank, bool) or self.rank < 1
         ):
             raise ValueError(f"rank must be None or a positive integer, got {self.rank!r}")
+        if not isinstance(self.reuse_hidden, bool):
+            raise TypeError(f"reuse_hidden must be True or False, got {self.reuse_hidden!r}")
         if self.rtol is not None and not (
             isinstance(self.rtol, int | float) and not isinstance(self.rtol, bool)
             and 0 <= self.rtol < 1
@@ -153,13 +159,20 @@ class VariableProjection(FreeEndpoints):
 
         return jax.lax.stop_gradient(jax.tree_util.tree_map(cast, span))
 
-    def reduce(self, theta: Array, span: ProjectedSpan) -> Array:
-        """Coefficients `(k, D)` of the network `theta`'s curve projected on `span` (least
-        squares in the quadrature's norm): the Newton start."""
-        alpha = theta[: span.to_alpha.shape[1]]
-        # to_alpha = V diag(1/s): the coefficients are diag(s) Vᵀ α = pinv(to_alpha) α.
-        pinv = jnp.linalg.pinv(span.to_alpha)
-        c = jnp.einsum("dks,sd->kd", pinv, alpha)
+    def reduce(self, theta: Array, span: ProjectedSpan, ctx: StepContext) -> Array:
+        """Coefficients `(k, D)` of the curve of the network `theta` (any hidden layer)
+        projected on `span`, by least squares in the quadrature's norm: the Newton start."""
+        dtype = ctx.q0.dtype
+        b = ctx.weights.astype(dtype)
+        q, dq = stage_values(lambda tau: ctx.basis.evaluate(theta, tau), ctx.nodes.astype(dtype))
+        ends = jax.vmap(ctx.basis.evaluate, in_axes=(None, 0))(theta, jnp.array([0.0, 1.0], dtype))
+        # The span's data columns are orthonormal, so projecting is one product with them.
+        c = (
+            jnp.einsum("j,djk,jd->kd", b, span.gq, q)
+            + jnp.einsum("j,djk,jd->kd", b, span.gv, dq)
+            + span.g0.T * ends[0]
+            + span.g1.T * ends[1]
+        )
         return jnp.where(span.live, c, 0)
 
     def expand(self, c: Array, span: ProjectedSpan) -> Array:

@@ -118,7 +118,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `basis`: the ansatz, e.g. `ShallowNetBasis(diffrax_vi.tanh, 10)`, `DenseNetBasis`,
       `SymbolicAnsatz`, `LagrangeBasis`.
     - `quadrature`: rule on `[0, 1]` for the discrete action. Default `GaussLegendre(8)`.
-    - `formulation`: `FreeEndpoints()` (default) or `InterpolatingEndpoints()`.
+    - `formulation`: `FreeEndpoints()` (default), `InterpolatingEndpoints()`, or
+      `VariableProjection()`: free endpoints solved for the output weights on the span of the
+      seed's hidden layer, a square system with an isolated root (shallow networks).
     - `initial_trajectory`: `IntegratorExtrapolation()` (default, the reference's),
       `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`.
     - `initial_guess`: how the seed parameters are fitted to the trajectory: an OGA
@@ -172,8 +174,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       With those root finders the fresh fit is their fallback point, in the compiled step
       once: they start there where the carried seed is unusable, and restart there when
       allowed, so the switch costs no compile time.
-    - `root_finder`: the per-step root finder. Default `LevenbergMarquardt()`, whose
-      tolerances scale with the working precision. Any `optimistix` root finder works.
+    - `root_finder`: the per-step root finder. Default `None`: `LevenbergMarquardt()` (whose
+      tolerances scale with the working precision), or `RoundoffNewton()` with
+      `VariableProjection()`, which needs it.
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
     - `adjoint`: how `optimistix.root_find` differentiates a converged step. The default solves
       the implicit-function system by least squares, since the step's Jacobian is singular.
@@ -230,7 +233,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
         if not isinstance(self.formulation, AbstractFormulation):
             raise TypeError(
-                "formulation must be FreeEndpoints() or InterpolatingEndpoints(), got "
+                "formulation must be FreeEndpoints(), InterpolatingEndpoints() or "
+                "VariableProjection(), got "
                 f"{self.formulation!r}"
             )
         if not isinstance(self.initial_trajectory, AbstractInitialTrajectory):
@@ -372,6 +376,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         if isinstance(trajectory, PreviousStep):
             trajectory = trajectory.first
         return isinstance(trajectory, HermiteExtrapolation)
+
+    def _carries_hidden(self) -> bool:
+        return isinstance(self.formulation, VariableProjection) and self.formulation.reuse_hidden
 
     def _refits(self) -> bool:
         return (
@@ -535,7 +542,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         fit_inputs = None  # the seed fit's inputs, where computed outside a `cond`
         lazy = self._lazy_fresh_fit()
         refit_ok = self._refit_allowed(ctx, state) if self._refits() else jnp.array(False)
-        if lazy and not self._refits():
+        hidden = None  # the hidden layer a projected step solves on, where carried over
+        if self._carries_hidden():
+            # The first step fits a seed; later ones keep the previous step's hidden layer and
+            # start from its curve continued (`VariableProjection(reuse_hidden=True)`).
+            warm = self._warm_seed(ctx, state)
+            seed = jax.lax.cond(
+                state.fresh, lambda: self._cold_seed(ctx, *cold_inputs)[0], lambda: warm
+            )
+            hidden = jnp.where(state.fresh, seed[0], state.theta)
+            refitted = ~state.fresh
+        elif lazy and not self._refits():
             # Only a warm start can be carried over; the fresh fit is the root finder's.
             warm = self._warm_seed(ctx, state)
             warm_used = self._warm_acceptable(warm, ctx, state, made_jump)
@@ -555,7 +572,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         carried = warm_used | refitted
 
         if isinstance(self.formulation, VariableProjection):
-            theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(seed, ctx)
+            theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(
+                seed, ctx, hidden
+            )
             restarted = jnp.array(False)
         else:
             theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_all(
@@ -568,12 +587,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             warm_used, refitted,
         )
 
-    def _solve_projected(self, seed, ctx: StepContext):
-        """The step's equations on the seed's feature span (`VariableProjection`)."""
+    def _solve_projected(self, seed, ctx: StepContext, hidden=None):
+        """The step's equations on the feature span of the hidden layer of `hidden` (default:
+        of the seed), from the seed's curve projected on it (`VariableProjection`)."""
         form = self.formulation
         theta_seed, p1_seed = seed
-        span = form.span(theta_seed, ctx)
-        z0 = jax.lax.stop_gradient((form.reduce(theta_seed, span), p1_seed))
+        span = form.span(theta_seed if hidden is None else hidden, ctx)
+        z0 = jax.lax.stop_gradient((form.reduce(theta_seed, span, ctx), p1_seed))
         scale = _residual_scale(ctx)
         sol = optx.root_find(
             form.reduced_residual,

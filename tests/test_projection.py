@@ -104,7 +104,7 @@ def test_closed_form_jacobian_matches_autodiff():
     assert isinstance(ctx, StepContext)
     form = solver.formulation
     span = form.span(theta, ctx)
-    z = (form.reduce(theta, span), problem.y0[1] + 0.1)
+    z = (form.reduce(theta, span, ctx), problem.y0[1] + 0.1)
     flat, unravel = jax.flatten_util.ravel_pytree(z)
 
     def residual(v):
@@ -218,3 +218,31 @@ def test_default_root_finder_follows_the_formulation():
     assert isinstance(dvi.NetworkVI(basis).root_finder, dvi.LevenbergMarquardt)
     solver = dvi.NetworkVI(basis, formulation=dvi.VariableProjection())
     assert isinstance(solver.root_finder, dvi.RoundoffNewton)
+
+
+def test_reused_hidden_layer_is_one_compiled_path_for_vmap_and_loop():
+    # With the first step's hidden layer kept, every later step starts from the previous
+    # curve continued and solves on the same span: no per-step seed fit whose greedy choices
+    # can differ between a lane of a vmap and a single solve.
+    problem = problems.harmonic_oscillator()
+    solver = projected(dvi.tanh, 10, 8, reuse_hidden=True)
+    run = eqx.filter_jit(
+        lambda y: diffrax.diffeqsolve(
+            problem.term, solver, problem.t0, problem.t1, problem.dt, y, args=problem.args,
+            saveat=diffrax.SaveAt(ts=jnp.asarray(problem.ts), solver_state=True),
+        )
+    )
+    amplitudes = jnp.array([0.3, 0.5, 0.7, 0.9])
+    loop = np.stack([np.asarray(run((a[None], jnp.zeros(1))).ys[0]) for a in amplitudes])
+    batched = jax.vmap(lambda a: run((a[None], jnp.zeros(1))))(amplitudes)
+    np.testing.assert_allclose(np.asarray(batched.ys[0]), loop, rtol=0, atol=1e-14)
+    steps = len(problem.ts) - 1
+    assert np.all(np.asarray(batched.solver_state.refits) == steps - 1)
+    assert np.all(np.asarray(batched.solver_state.max_iterations) == 1)
+    sol = run(problem.y0)
+    assert max_relative_error(problem, sol) <= 1e-11
+
+
+def test_reuse_hidden_must_be_a_bool():
+    with pytest.raises(TypeError, match="reuse_hidden"):
+        dvi.VariableProjection(reuse_hidden=1)
