@@ -14,11 +14,11 @@ Both take an Armijo backtracking line search on `½‖F‖²`, reuse the last Ja
 keeps cutting the residual (`reuse_jacobian`), form the Jacobian densely (by
 default with `jax.jacfwd`; `jacobian="rev"` uses `jax.jacrev`; `"auto"` and `"structured"` take
 the matrix the caller assembles, which `NetworkVI` does in closed form for shallow networks;
-each changes the rounding and with it the iteration path; `benchmarks/speed.py` compares whole
-solves), and are
+each changes the rounding and with it the iteration path), and are
 `optimistix.AbstractRootFinder`s, so `optimistix.root_find` supplies implicit differentiation
-of a converged step. Any optimistix root finder (`optx.Newton`, `optx.Dogleg`, ...) may be used
-in their place.
+of a converged step. Another optimistix root finder can be passed in their place, but it has
+neither the convergence tests below nor the second start, and a plain Newton iteration may
+stop as singular on the rank-deficient systems of a network step.
 
 **When is a step converged?** Tolerances left as `None` scale with the machine epsilon of the
 unknowns' dtype (`default_tolerances`). Because the Jacobian is numerically rank-deficient, part
@@ -83,11 +83,10 @@ def default_tolerances(dtype) -> dict[str, float]:
       `patience_floor` iterations while below `eps^(3/4)·scale`.
 
     The output test is what ends most steps: the rank-deficient Jacobian leaves a residual
-    floor near `eps·‖J‖·‖x‖`, usually above `ftol`, where results move at the 1e-13 level
-    with the iteration path. Ending sooner saves iterations at that price (oscillator, 10
-    steps of 0.1, max error: `settle=3` 2.3e-13, `settle=1` 4.5e-13, `settle=0` with
-    `otol = eps^(3/4)` 9.2e-13); `otol = eps^(1/2)` made the double pendulum's error 50 times
-    larger, since its iterates creep along near-roots.
+    floor near `eps·‖J‖·‖x‖`, usually above `ftol`, where results move with the iteration
+    path. Ending sooner (a smaller `settle`, a larger `otol`) saves iterations and lets the
+    result move more at that level; a very loose `otol` lets iterates that creep along
+    near-roots end far from a root.
     """
     eps = float(jnp.finfo(dtype).eps)
     return dict(
@@ -462,18 +461,15 @@ _COMMON_ARGS = """
       returning the dense matrix) or `"auto"` (the caller's matrix where it passes one, else
       `jax.jacfwd`). `NetworkVI` assembles the matrix by coordinate blocks
       (`FreeEndpoints.jacobian`); under `"auto"` it passes it only where the blocks have a
-      closed form (`ShallowNetBasis` without mirrored pairs, free endpoints), which is 8–13×
-      faster than `jax.jacfwd` on the double-pendulum, Kepler and Toda fixtures of
-      `benchmarks/jacobian.py`. All give the same matrix up to rounding; the iteration path,
+      closed form (`ShallowNetBasis` without mirrored pairs, free endpoints), which is several
+      times faster than `jax.jacfwd`. All give the same matrix up to rounding; the iteration path,
       and with it the result at the level of the residual floor, changes with it.
     - `reuse_jacobian`: keep the Jacobian of the previous iteration while its full step is
       accepted and cuts the residual at least four-fold, for at most this many iterations in
       a row (default 0: a fresh Jacobian on every iteration); a fresh one is evaluated
       otherwise, at the residual floor, and always before convergence is declared there.
-      The Jacobian dominates an iteration's cost (double pendulum: 1.2 ms against 16 µs
-      for a residual), so `3` cuts the time of a step there by about a third; it changes
-      the iteration path, and with it the result at the level of the residual floor (the
-      10-step oscillator test: max error 5.1e-13 against 4.5e-13).
+      The Jacobian dominates an iteration's cost, so reuse saves time; it changes the
+      iteration path, and with it the result at the level of the residual floor.
     - `convergence`: `"strict"` (default: the tests above) or `"reference"`, which mimics
       NonlinearIntegrators.jl (its SimpleSolvers defaults, in the max norm): converged when
       `max|F| ≤ 8 eps`, or when the last iteration changed `x` or `F` by at most `2 eps`

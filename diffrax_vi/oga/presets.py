@@ -89,10 +89,9 @@ def OGA2d(
 
     The default dictionary keeps hidden weights `|w| ≤ 1` (magnitudes `1/8, 1/4, 1/2, 1`):
     the reference's grid also has `2, 4, 8`, whose atoms switch within a fraction of the step,
-    and seeds built from them left the Newton solve of every `NetworkVI` configuration we tried
-    (harmonic oscillator, tanh/GELU width 10 and ReLU³ width 4) at a residual plateau, while
-    with `|w| ≤ 1` tanh and GELU converge to ~1e-13 (`benchmarks/seed_presets.py`). Pass
-    `WeightBiasGrid2d()` for the reference's grid.
+    and seeds built from them left the Newton solve at a residual plateau, where seeds with
+    `|w| ≤ 1` converge for tanh and GELU networks. Pass `WeightBiasGrid2d()` for the
+    reference's grid.
 
     **Arguments:**
 

@@ -384,11 +384,9 @@ class TrainingMethod(AbstractParameterSeed):
       (default) uses `default_init_scale` of the working dtype.
 
     Adam moves every parameter by about the step size per epoch whatever the gradient, so the
-    fit stalls near the last step size: on one step of the harmonic-oscillator fixture
-    (targets 0.5 varying by 1e-3) the default reaches an RMS error of about 7e-4 (1.5e-4 with
-    10 000 epochs). Newton then needs 30–55 iterations per step instead of LSGD's 5, and the
-    converged trajectory is less accurate (7e-9 instead of 4e-12 relative); `LSGD` is the
-    better seed.
+    fit stalls at an error near the last step size, far above what a least-squares fit
+    reaches. Newton then needs many more iterations than from `LSGD`'s seed, and the
+    converged trajectory is less accurate; `LSGD` is the better seed.
     """
 
     epochs: int = eqx.field(static=True, default=2000)
