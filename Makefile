@@ -34,10 +34,13 @@ test-long: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check diffrax_vi tests examples benchmarks
 
-# The documentation site, built strictly (any warning fails) into site/. Also installs
+# The documentation site, built strictly (any warning fails) into site/, then the code blocks
+# of the pages that `make test` leaves out (marked `long` in tests/test_docs_examples.py), so
+# that `make docs` and `make test` together run every code block of the docs. Also installs
 # Debian's chromium, which the browser test of the built site (tests/test_docs.py) needs.
 docs: $(STAMP) /usr/bin/chromium
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/test_docs_examples.py -m long
 
 /usr/bin/chromium:
 	apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium
