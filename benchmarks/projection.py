@@ -7,6 +7,10 @@ residual, and (for the timed fixture) milliseconds per run and per step after co
 under `jax.vmap` and as a loop of single solves and prints their largest difference.
 
     PYTHONPATH=. .venv/bin/python benchmarks/projection.py [--repeats 3] [--quick]
+        [--sections fixtures vmap timing energy] [--energy-steps 2000 100000]
+
+The energy section runs the oscillator at h = 0.5 and prints the largest relative energy
+error over the run, and over its first and second halves (a linear drift doubles it).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.activations import activation_name  # noqa: E402
 
+SECTIONS = ("fixtures", "vmap", "timing", "energy")
 FORMULATIONS = {
     "projection": dvi.VariableProjection,
     "projection, hidden layer reused": lambda: dvi.VariableProjection(reuse_hidden=True),
@@ -75,6 +80,17 @@ def fixtures(quick: bool):
 
 
 def run(args) -> None:
+    if "fixtures" in args.sections:
+        fixture_table(args)
+    if "vmap" in args.sections:
+        vmap_against_loop()
+    if "timing" in args.sections:
+        timing(args)
+    if "energy" in args.sections:
+        energy(args)
+
+
+def fixture_table(args) -> None:
     print("| fixture | network | formulation | result | max error | iterations (median/max) "
           "| residual |")
     print("|---|---|---|---|---|---|---|")
@@ -89,6 +105,9 @@ def run(args) -> None:
                   f"{'ok' if ok else 'failed'} | {error} | {med}/{most} | "
                   f"{float(sol.solver_state.report.residual):.1e} |")
 
+
+
+def vmap_against_loop() -> None:
     print("\nvmap of four oscillators against the loop of single solves (tanh 10, GL8):")
     problem = problems.harmonic_oscillator()
     amplitudes = [0.3, 0.5, 0.7, 0.9]
@@ -100,6 +119,9 @@ def run(args) -> None:
         vm = np.asarray(batched(jnp.array(amplitudes)))
         print(f"- {name}: max |vmap - loop| = {np.abs(vm - loop).max():.1e}")
 
+
+
+def timing(args) -> None:
     steps = 20 if args.quick else 200
     problem = problems.harmonic_oscillator().with_span(n_steps=steps, dt=0.5)
     print(f"\noscillator h = 0.5, {steps} steps (tanh 10, GL8; CGVI(7) with GL8), "
@@ -128,10 +150,47 @@ def run(args) -> None:
               f"{med * 1e3:.1f} | {med / steps * 1e6:.0f} | {med / base:.1f} |")
 
 
+def energy(args) -> None:
+    print("\noscillator h = 0.5: largest relative energy error over the run (at up to 201 step "
+          "ends; tanh 10, GL8)")
+    print("| steps | solver | result | max energy error | first half | second half |")
+    print("|---|---|---|---|---|---|")
+    for steps in args.energy_steps:
+        problem = problems.harmonic_oscillator().with_span(n_steps=steps, dt=0.5)
+        solvers = {
+            "projection, hidden layer reused": network(
+                dvi.tanh, 10, 8, dvi.VariableProjection(reuse_hidden=True)
+            ),
+            "all-parameter": network(dvi.tanh, 10, 8, dvi.FreeEndpoints()),
+            "CGVI(7)": dvi.CGVI(7, dvi.GaussLegendre(8)),
+        }
+        # step ends only (inside a step the dense output is less accurate than the step)
+        ends = np.unique(np.round(np.linspace(0, steps, min(steps, 200) + 1)))
+        ts = jnp.asarray(problem.t0 + 0.5 * ends)
+        for name, solver in solvers.items():
+            if name == "all-parameter" and steps > args.all_parameter_steps:
+                continue
+            sol = diffrax.diffeqsolve(
+                problem.term, solver, problem.t0, problem.t1, problem.dt, problem.y0,
+                args=problem.args, saveat=diffrax.SaveAt(ts=ts), max_steps=steps + 10,
+                throw=False,
+            )
+            e = np.asarray(jax.vmap(lambda q, p: problem.energy(0.0, q, p))(*sol.ys))
+            rel = np.abs(e - e[0]) / abs(e[0])
+            ok = "ok" if sol.result == diffrax.RESULTS.successful else "failed"
+            half = len(rel) // 2 + 1
+            print(f"| {steps} | {name} | {ok} | {np.nanmax(rel):.2e} | "
+                  f"{np.nanmax(rel[:half]):.2e} | {np.nanmax(rel[half:]):.2e} |")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="one fixture, 20 timed steps")
+    parser.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
+    parser.add_argument("--energy-steps", nargs="+", type=int, default=[2000])
+    parser.add_argument("--all-parameter-steps", type=int, default=2000,
+                        help="longest energy run of the all-parameter solve (it is slow)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")

@@ -176,7 +176,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       allowed, so the switch costs no compile time.
     - `root_finder`: the per-step root finder. Default `None`: `LevenbergMarquardt()` (whose
       tolerances scale with the working precision), or `RoundoffNewton()` with
-      `VariableProjection()`, which needs it.
+      `VariableProjection()`, which needs it. Other `optimistix` root finders are accepted by
+      the all-parameter formulations but get none of the solver's options (residual scale,
+      closed-form Jacobian, fallback seed) and stop on absolute tolerances; a plain
+      `optx.Newton` meets a singular Jacobian there and fails the step.
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
     - `adjoint`: how `optimistix.root_find` differentiates a converged step. The default solves
       the implicit-function system by least squares, since the step's Jacobian is singular.

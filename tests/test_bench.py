@@ -652,3 +652,18 @@ def test_step_structure_script_reports_the_three_spectra(tmp_path, capsys):
     assert refused[4] == "refused" and set(refused[5:]) == {"–"}
     with pytest.raises(SystemExit):
         module.main(["--tiny", "--activations", "relu", "--out", "-"])
+
+
+def test_projection_script_energy_section(capsys):
+    """benchmarks/projection.py --sections energy: a 20-step oscillator run per solver, with
+    every solver's row successful and an energy error at the level of a converged step."""
+    module = benchmark_script("projection")
+    module.main(["--sections", "energy", "--energy-steps", "20"])
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 20 |")]
+    assert len(rows) == 3
+    for row in rows:
+        cells = [c.strip() for c in row.split("|")[1:-1]]
+        assert cells[2] == "ok"
+        assert float(cells[3]) <= 1e-10
+    with pytest.raises(SystemExit):
+        module.main(["--sections", "nothing"])
