@@ -44,7 +44,13 @@ from .oga import (
     WeightedQR,
     oga_fit,
 )
-from .projection import RoundoffNewton, VariableProjection
+from .projection import (
+    FirstSeedLayer,
+    RoundoffNewton,
+    SeedLayer,
+    UniformLayer,
+    VariableProjection,
+)
 from .quadrature import GaussLegendre, Simpson
 from .results import StepReport, describe_failure, failure_kind
 from .seeding import (
@@ -100,6 +106,9 @@ __all__ = [
     "FreeEndpoints",
     "VariableProjection",
     "RoundoffNewton",
+    "UniformLayer",
+    "FirstSeedLayer",
+    "SeedLayer",
     "GaussLegendre",
     "IODETerm",
     "IncrementalQR",

@@ -25,11 +25,13 @@ among, the best-conditioned one.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
@@ -39,7 +41,15 @@ from .ansatz.shallow import ShallowNetBasis
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
 from .linalg import solve
 
-__all__ = ["VariableProjection", "ProjectedSpan", "RoundoffNewton"]
+__all__ = [
+    "AbstractHiddenLayer",
+    "FirstSeedLayer",
+    "ProjectedSpan",
+    "RoundoffNewton",
+    "SeedLayer",
+    "UniformLayer",
+    "VariableProjection",
+]
 
 
 def _work_dtype(dtype):
@@ -64,12 +74,63 @@ class ProjectedSpan(eqx.Module):
     hidden: tuple[Array, Array]
 
 
+class AbstractHiddenLayer(eqx.Module):
+    """Where a projected step's hidden layer `(w, β)` comes from."""
+
+
+class SeedLayer(AbstractHiddenLayer):
+    """The hidden layer of each step's own seed (the OGA fit of the trajectory seed, or
+    whichever `initial_guess` the solver has): a fit on every step."""
+
+
+class FirstSeedLayer(AbstractHiddenLayer):
+    """The hidden layer of the first step's seed, kept for every later step; each later step
+    starts from the previous step's curve continued, so only the first step fits a seed."""
+
+
+class UniformLayer(AbstractHiddenLayer):
+    """A fixed hidden layer in the step's local time: neuron `i` of `S` has weight
+    `±scale` (alternating signs) and is centred (`w τ + β = 0`) at `τ_i`, the centres spread
+    uniformly over `centres`. The same layer on every step and in every coordinate, so the
+    step needs no seed fit and its result is a continuous function of the state.
+
+    **Arguments:**
+
+    - `scale`: `|w|` of every neuron. Default 0.5.
+    - `centres`: the interval `(a, b)` the centres spread over, in units of the step.
+      Default `(-4.0, 5.0)`: centres well outside the step make the features smooth on it,
+      so that their span holds the low-degree polynomials a smooth motion needs.
+    """
+
+    scale: float = eqx.field(static=True, default=0.5)
+    centres: tuple[float, float] = eqx.field(static=True, default=(-4.0, 5.0))
+
+    def __check_init__(self):
+        if not (isinstance(self.scale, int | float) and not isinstance(self.scale, bool)
+                and self.scale > 0 and math.isfinite(self.scale)):
+            raise ValueError(f"scale must be a positive number, got {self.scale!r}")
+        lo, hi = self.centres
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(f"centres must be a finite increasing pair, got {self.centres!r}")
+
+    def parameters(self, basis: ShallowNetBasis, dim: int, dtype) -> Array:
+        """The network parameters `(α = 0, w, β)`, each `(S, D)`."""
+        width = basis.width
+        lo, hi = self.centres
+        step = (hi - lo) / max(width - 1, 1)
+        centres = np.array([lo + step * i for i in range(width)])
+        w = self.scale * np.where(np.arange(width) % 2 == 0, 1.0, -1.0)
+        columns = np.stack([w, -w * centres])  # (2, S)
+        w_beta = jnp.asarray(np.repeat(columns[:, :, None], dim, axis=2), dtype)
+        return ShallowNetBasis.join(jnp.zeros((width, dim), dtype), w_beta[0], w_beta[1])
+
+
 class VariableProjection(FreeEndpoints):
     """Free endpoints, solved on the span of the seed's hidden layer (variable projection).
 
     The curve is the network, `q_{n+1} = q_h(1)` and `p_{n+1}` is an unknown, as with
     `FreeEndpoints`; but only the output weights move, within the leading `rank` directions
-    of the orthonormalised feature span, and the hidden layer `(w, β)` is the seed's. The
+    of the orthonormalised feature span of a hidden layer `(w, β)` chosen by `hidden`. The
     step's equations are then square with an isolated root. Needs a `ShallowNetBasis`
     without mirrored pairs.
 
@@ -78,24 +139,29 @@ class VariableProjection(FreeEndpoints):
     - `rank`: directions of the feature span kept per coordinate. Default `None`:
       `min(width, R + 1)` for `R` quadrature nodes.
     - `rtol`: a direction whose singular value is below `rtol` times the largest is taken as
-      absent and its coefficient pinned to zero. Default `None`: `sqrt(eps)` of the working
-      dtype.
-    - `reuse_hidden`: keep the hidden layer of the first step's seed for all later steps
-      (each step solves on its span, starting from the previous curve continued) instead of
-      fitting a seed on every step. Default `False`.
+      absent and its coefficient pinned to zero. Default `None`: `eps^(5/8)` of the working
+      dtype (1.6e-10 in float64). A kept direction whose singular value is `s` carries about
+      `eps/s` of rounding in its data, but a smooth motion needs little of the weak
+      directions, and dropping them costs more than their rounding.
+    - `hidden`: where the hidden layer comes from: `UniformLayer()` (default; a fixed layer,
+      no seed fit), `FirstSeedLayer()` (the first step's seed fit, kept) or `SeedLayer()`
+      (each step's seed fit).
     """
 
+    hidden: AbstractHiddenLayer = UniformLayer()
     rank: int | None = eqx.field(static=True, default=None)
     rtol: float | None = eqx.field(static=True, default=None)
-    reuse_hidden: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.rank is not None and (
             not isinstance(self.rank, int) or isinstance(self.rank, bool) or self.rank < 1
         ):
             raise ValueError(f"rank must be None or a positive integer, got {self.rank!r}")
-        if not isinstance(self.reuse_hidden, bool):
-            raise TypeError(f"reuse_hidden must be True or False, got {self.reuse_hidden!r}")
+        if not isinstance(self.hidden, AbstractHiddenLayer):
+            raise TypeError(
+                "hidden must be UniformLayer(), FirstSeedLayer() or SeedLayer(), got "
+                f"{self.hidden!r}"
+            )
         if self.rtol is not None and not (
             isinstance(self.rtol, int | float) and not isinstance(self.rtol, bool)
             and 0 <= self.rtol < 1
@@ -141,7 +207,7 @@ class VariableProjection(FreeEndpoints):
         work = _work_dtype(dtype)
         u, s, vt = jnp.linalg.svd(data.astype(work), full_matrices=False)
         u, s, v = u[..., :k], s[..., :k], jnp.swapaxes(vt, 1, 2)[..., :k]
-        rtol = self.rtol if self.rtol is not None else float(jnp.finfo(dtype).eps) ** 0.5
+        rtol = self.rtol if self.rtol is not None else float(jnp.finfo(dtype).eps) ** 0.625
         live = s > rtol * s[..., :1]
         inv = jnp.where(live, 1 / jnp.where(live, s, 1), 0)
         root_b = root_b[:, 0, 0].astype(work)
@@ -159,13 +225,14 @@ class VariableProjection(FreeEndpoints):
 
         return jax.lax.stop_gradient(jax.tree_util.tree_map(cast, span))
 
-    def reduce(self, theta: Array, span: ProjectedSpan, ctx: StepContext) -> Array:
-        """Coefficients `(k, D)` of the curve of the network `theta` (any hidden layer)
+    def reduce(self, curve: Callable[[Array], Array], span: ProjectedSpan, ctx: StepContext
+               ) -> Array:
+        """Coefficients `(k, D)` of a curve `τ ↦ q(τ)` (e.g. a network with any hidden layer)
         projected on `span`, by least squares in the quadrature's norm: the Newton start."""
         dtype = ctx.q0.dtype
         b = ctx.weights.astype(dtype)
-        q, dq = stage_values(lambda tau: ctx.basis.evaluate(theta, tau), ctx.nodes.astype(dtype))
-        ends = jax.vmap(ctx.basis.evaluate, in_axes=(None, 0))(theta, jnp.array([0.0, 1.0], dtype))
+        q, dq = stage_values(curve, ctx.nodes.astype(dtype))
+        ends = jax.vmap(curve)(jnp.array([0.0, 1.0], dtype))
         # The span's data columns are orthonormal, so projecting is one product with them.
         c = (
             jnp.einsum("j,djk,jd->kd", b, span.gq, q)
@@ -248,21 +315,23 @@ class VariableProjection(FreeEndpoints):
 class _NewtonState(eqx.Module):
     f: Array
     step_norm: Array
-    previous_norm: Array
     converged: Array
-    stagnated: Array
+    at_floor: Array
+    stalls: Array
 
 
 class RoundoffNewton(optx.AbstractRootFinder):
     """Newton's method for a square system with an isolated root, run to round-off.
 
     Each iteration solves `J d = −F` by LU with a fresh Jacobian (`options["jacobian"]`, a
-    function of the unknowns and `args`, where the caller gives one; else `jax.jacfwd`). The
-    solve ends as converged when `max|F| ≤ ftol · scale` (`options["scale"]`), or when the
-    Newton update stops shrinking (rounding has taken over) with `max|F| ≤ floor · scale`;
-    an update that stops shrinking above that is a failure (`nonlinear_divergence`), and so is
-    the iteration cap. No tolerance on the unknowns is needed: quadratic convergence reaches
-    the floor in a few iterations.
+    function of the unknowns and `args`, where the caller gives one; else `jax.jacfwd`). Far
+    from the root a backtracking line search halves the step until `max|F|` falls; within
+    `floor` of the root the full step is always taken. The solve ends as converged when
+    `max|F| ≤ ftol · scale` (`options["scale"]`), or when `max|F| ≤ floor · scale` and the
+    Newton update has stopped shrinking (rounding has taken over). No tolerance on the
+    unknowns is needed: quadratic convergence reaches the floor in a few iterations. It fails
+    (`nonlinear_divergence`) after `max_stalls` line searches in a row find no decrease, and
+    at the iteration cap.
 
     **Arguments:**
 
@@ -270,12 +339,16 @@ class RoundoffNewton(optx.AbstractRootFinder):
       times the residual scale. Default 64.
     - `floor`: largest residual accepted once the updates stop shrinking, in the same units.
       Default 4096.
+    - `max_backtracks`: halvings of the step in one line search. Default 20.
+    - `max_stalls`: line searches in a row without decrease before giving up. Default 3.
     - `rtol`, `atol`, `norm`: unused; diffrax reads them off the root finder of an implicit
       solver.
     """
 
     ftol: float = 64.0
     floor: float = 4096.0
+    max_backtracks: int = eqx.field(static=True, default=20)
+    max_stalls: int = eqx.field(static=True, default=3)
     rtol: float | None = None
     atol: float | None = None
     norm: Callable = optx.max_norm
@@ -287,46 +360,69 @@ class RoundoffNewton(optx.AbstractRootFinder):
         del aux_struct, tags, f_struct
         f, _ = fn(y, args)
         flat = ravel_pytree(f)[0]
-        inf = jnp.full((), jnp.inf, flat.dtype)
         scale = jnp.asarray(options.get("scale", 1.0), flat.dtype)
         small = jnp.max(jnp.abs(flat)) <= self._tolerance("ftol", flat.dtype) * scale
-        return _NewtonState(flat, inf, inf, small, jnp.array(False))
+        inf = jnp.full((), jnp.inf, flat.dtype)
+        return _NewtonState(flat, inf, small, jnp.array(False), jnp.array(0, jnp.int32))
 
     def step(self, fn, y, args, options, state, tags):
         del tags
         flat_y, unravel = ravel_pytree(y)
         dtype = flat_y.dtype
+        scale = jnp.asarray(options.get("scale", 1.0), dtype)
 
         def residual(v):
-            return ravel_pytree(fn(unravel(v), args)[0])[0]
+            out, aux = fn(unravel(v), args)
+            return ravel_pytree(out)[0], aux
 
         given = options.get("jacobian")
-        jac = given(y, args) if given is not None else jax.jacfwd(residual)(flat_y)
+        jac = given(y, args) if given is not None else jax.jacfwd(lambda v: residual(v)[0])(flat_y)
         d = solve(jac.astype(dtype), -state.f)
-        new = flat_y + d
-        f, aux = fn(unravel(new), args)
-        flat_f = ravel_pytree(f)[0]
-        norm = jnp.max(jnp.abs(d))
-        scale = jnp.asarray(options.get("scale", 1.0), dtype)
-        converged = jnp.max(jnp.abs(flat_f)) <= self._tolerance("ftol", dtype) * scale
-        # Rounding has taken over once an update is no smaller than the one before it.
-        stagnated = norm >= state.step_norm
-        return unravel(new), _NewtonState(flat_f, norm, state.step_norm, converged, stagnated), aux
+        fmax = jnp.max(jnp.abs(state.f))
+        near = fmax <= self._tolerance("floor", dtype) * scale
+        f_full, aux_full = residual(flat_y + d)
+
+        def enough(f_try, a):
+            return near | (jnp.max(jnp.abs(f_try)) <= (1 - 1e-4 * a) * fmax)
+
+        def cond(carry):
+            a, f_try, _, k = carry
+            return ~enough(f_try, a) & (k < self.max_backtracks)
+
+        def body(carry):
+            a, _, _, k = carry
+            a = a / 2
+            f_try, aux = residual(flat_y + a * d)
+            return a, f_try, aux, k + 1
+
+        one = jnp.ones((), dtype)
+        a, f_new, aux, _ = jax.lax.while_loop(cond, body, (one, f_full, aux_full, 0))
+        decreased = enough(f_new, a)
+        new = jnp.where(decreased, flat_y + a * d, flat_y)
+        f_new = jnp.where(decreased, f_new, state.f)
+        fmax_new = jnp.max(jnp.abs(f_new))
+        norm = jnp.max(jnp.abs(a * d))
+        converged = fmax_new <= self._tolerance("ftol", dtype) * scale
+        # Rounding has taken over once a full update near the root is no smaller than the
+        # one before it.
+        at_floor = near & (norm >= state.step_norm) & (
+            fmax_new <= self._tolerance("floor", dtype) * scale
+        )
+        stalls = jnp.where(decreased, 0, state.stalls + 1)
+        step_norm = jnp.where(decreased, norm, state.step_norm)
+        return unravel(new), _NewtonState(f_new, step_norm, converged, at_floor, stalls), aux
 
     def terminate(self, fn, y, args, options, state, tags):
-        del fn, y, args, tags
-        dtype = state.f.dtype
-        scale = jnp.asarray(options.get("scale", 1.0), dtype)
+        del fn, y, args, options, tags
         fmax = jnp.max(jnp.abs(state.f))
         nonfinite = ~jnp.isfinite(fmax)
-        at_floor = state.stagnated & (fmax <= self._tolerance("floor", dtype) * scale)
-        failed = nonfinite | (state.stagnated & ~at_floor)
+        stalled = state.stalls >= self.max_stalls
         result = optx.RESULTS.where(
             nonfinite,
             optx.RESULTS.nonfinite,
-            optx.RESULTS.where(failed, optx.RESULTS.nonlinear_divergence, optx.RESULTS.successful),
+            optx.RESULTS.where(stalled, optx.RESULTS.nonlinear_divergence, optx.RESULTS.successful),
         )
-        return state.converged | at_floor | failed, result
+        return state.converged | state.at_floor | nonfinite | stalled, result
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}

@@ -29,7 +29,7 @@ from .interpolation import NetworkInterpolation
 from .lazy import unless_all_skip
 from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
 from .oga import OGA, OGA1d, OGAReference
-from .projection import RoundoffNewton, VariableProjection
+from .projection import FirstSeedLayer, RoundoffNewton, UniformLayer, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport, from_root_find
 from .seeding.fit import (
@@ -380,9 +380,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             trajectory = trajectory.first
         return isinstance(trajectory, HermiteExtrapolation)
 
-    def _carries_hidden(self) -> bool:
-        return isinstance(self.formulation, VariableProjection) and self.formulation.reuse_hidden
-
     def _refits(self) -> bool:
         return (
             self.reuse_neurons
@@ -545,17 +542,31 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         fit_inputs = None  # the seed fit's inputs, where computed outside a `cond`
         lazy = self._lazy_fresh_fit()
         refit_ok = self._refit_allowed(ctx, state) if self._refits() else jnp.array(False)
-        hidden = None  # the hidden layer a projected step solves on, where carried over
-        if self._carries_hidden():
-            # The first step fits a seed; later ones keep the previous step's hidden layer and
-            # start from its curve continued (`VariableProjection(reuse_hidden=True)`).
+        projected = isinstance(self.formulation, VariableProjection)
+        rule = self.formulation.hidden if projected else None
+        if isinstance(rule, UniformLayer | FirstSeedLayer):
+            # After the first step, every step starts from the previous curve continued; the
+            # first starts from a seed fit (`FirstSeedLayer`) or from the constant curve q_n.
             warm = self._warm_seed(ctx, state)
-            seed = jax.lax.cond(
-                state.fresh, lambda: self._cold_seed(ctx, *cold_inputs)[0], lambda: warm
+            if isinstance(rule, UniformLayer):
+                dim = ctx.q0.shape[0]
+                hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
+                start = self._continued_or_constant(ctx, state, warm)
+            else:
+                seed = jax.lax.cond(
+                    state.fresh, lambda: self._cold_seed(ctx, *cold_inputs)[0], lambda: warm
+                )
+                hidden = jnp.where(state.fresh, seed[0], state.theta)
+                start = (functools.partial(ctx.basis.evaluate, seed[0]), seed[1])
+            warm_used = ~state.fresh
+            theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(
+                ctx, hidden, *start
             )
-            hidden = jnp.where(state.fresh, seed[0], state.theta)
-            refitted = ~state.fresh
-        elif lazy and not self._refits():
+            return self._finish_step(
+                ctx, state, theta, q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype), n, result,
+                residual, tolerance, jnp.array(False), warm_used, jnp.array(False),
+            )
+        if lazy and not self._refits():
             # Only a warm start can be carried over; the fresh fit is the root finder's.
             warm = self._warm_seed(ctx, state)
             warm_used = self._warm_acceptable(warm, ctx, state, made_jump)
@@ -574,9 +585,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
         carried = warm_used | refitted
 
-        if isinstance(self.formulation, VariableProjection):
+        if projected:  # `SeedLayer`: the span of this step's own seed
+            curve = functools.partial(ctx.basis.evaluate, seed[0])
             theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(
-                seed, ctx, hidden
+                ctx, seed[0], curve, seed[1]
             )
             restarted = jnp.array(False)
         else:
@@ -590,13 +602,23 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             warm_used, refitted,
         )
 
-    def _solve_projected(self, seed, ctx: StepContext, hidden=None):
-        """The step's equations on the feature span of the hidden layer of `hidden` (default:
-        of the seed), from the seed's curve projected on it (`VariableProjection`)."""
+    def _continued_or_constant(self, ctx: StepContext, state: NetworkVIState, warm):
+        """The start of a projected step: the previous step's curve continued, or on the
+        first step the constant curve `q_n` with `p_{n+1} = p_n`."""
+        theta, p1 = warm
+
+        def curve(tau):
+            return jnp.where(state.fresh, ctx.q0, ctx.basis.evaluate(theta, tau))
+
+        return curve, jnp.where(state.fresh, ctx.p0, p1)
+
+    def _solve_projected(self, ctx: StepContext, hidden, curve, p1_start):
+        """The step's equations on the feature span of the hidden layer of the parameters
+        `hidden`, from the curve `τ ↦ curve(τ)` projected on it and `p1_start`
+        (`VariableProjection`)."""
         form = self.formulation
-        theta_seed, p1_seed = seed
-        span = form.span(theta_seed if hidden is None else hidden, ctx)
-        z0 = jax.lax.stop_gradient((form.reduce(theta_seed, span, ctx), p1_seed))
+        span = form.span(hidden, ctx)
+        z0 = jax.lax.stop_gradient((form.reduce(curve, span, ctx), p1_start))
         scale = _residual_scale(ctx)
         sol = optx.root_find(
             form.reduced_residual,
