@@ -342,17 +342,57 @@ def test_published_suites_hold_the_documented_networkvi_settings():
     from diffrax_vi.bench.suites import SETTINGS, energy_entries, networkvi_entries
 
     setting = SETTINGS["harmonic_oscillator"]
-    warm, fast = networkvi_entries(setting, False)
+    warm, fast, projected = networkvi_entries(setting, False)
     assert warm.name.endswith("warm") and isinstance(
         warm.solver.initial_trajectory, dvi.PreviousStep)
     assert fast.name.endswith("fast") and fast.solver.reuse_neurons
     assert fast.solver.root_finder.settle == 0 and fast.solver.root_finder.jacobian == "auto"
-    assert len(networkvi_entries(setting, True)) == 4
+    assert projected.name == "NetworkVI tanh10 R8 projection" and projected.family == "ours"
+    assert isinstance(projected.solver.formulation, dvi.VariableProjection)
+    assert isinstance(projected.solver.formulation.hidden, dvi.UniformLayer)
+    assert isinstance(projected.solver.root_finder, dvi.RoundoffNewton)
+    assert len(networkvi_entries(setting, True)) == 5
     first, long_run = energy_entries(setting)
     assert first.name == warm.name and long_run.name.endswith("long-run")
     assert long_run.solver.reuse_neurons and long_run.solver.refit_residual == pytest.approx(
         2048 * np.finfo(np.float64).eps)
     assert {e.family for e in (warm, fast, first, long_run)} == {"ours"}
+
+
+def test_stability_sweep_runs_the_projected_step_on_request(tmp_path):
+    """`--solvers projection` adds the projected step (`VariableProjection()` with its
+    `RoundoffNewton`) to the sweep: our convergence test only, λ = 0, not in the default
+    grids (which stay the reference's)."""
+    from diffrax_vi.bench.stability import run_case, select_solvers
+
+    assert select_solvers(None) == ("LevenbergMarquardt", "RegularisedNewton")
+    assert select_solvers(["projection"]) == ("projection",)
+    assert select_solvers(["Newton", "proj"]) == ("RegularisedNewton", "projection")
+    with pytest.raises(ValueError, match="match"):
+        select_solvers(["DogLeg"])
+    with pytest.raises(SystemExit):
+        cli_main(["stability", "--solvers", "DogLeg", "--out", str(tmp_path)])
+    cases = quick_grid(solvers=("projection",))
+    assert len(cases) == 54 and {c.acceptance for c in cases} == {"strict"}
+    assert {c.solver for c in quick_grid()} == {"LevenbergMarquardt", "RegularisedNewton"}
+    case = next(c for c in cases if c.problem == "harmonic_oscillator")
+    assert case.lam_value == 0.0
+    solver = case.build(reference=jnp.asarray(True), lam=jnp.asarray(1.0))
+    assert isinstance(solver.formulation, dvi.VariableProjection)
+    assert isinstance(solver.root_finder, dvi.RoundoffNewton)
+    assert solver.root_find_max_steps == case.max_iterations == 1000
+    with pytest.raises(ValueError, match="only our convergence test"):
+        dataclasses.replace(case, acceptance="reference")
+    with pytest.raises(ValueError, match="undamped"):
+        dataclasses.replace(case, lam=1e-3)
+    full = full_grid(problems=("harmonic_oscillator",), solvers=("projection",))
+    assert len(full) == 648 and len({c.solver_key() for c in full}) == 162
+    with pytest.raises(ValueError, match="unknown solver"):
+        full_grid(solvers=("DogLeg",))
+    # two steps through the sweep's compiled solve (the traced λ and flag go unused)
+    row = run_case(dataclasses.replace(case, dt=0.1, dtype="float64", activation="tanh",
+                                       steps=2))
+    assert row["status"] == "ok" and row["steps_done"] == 2 and row["ref_err"] < 1e-12
 
 
 def benchmark_script(name: str):

@@ -6,7 +6,9 @@ Commands:
 - `energy`: energy error over a long horizon (NetworkVI on fixed steps, Tsit5 and Dopri8 at
   several tolerances, so that one of them matches NetworkVI's cost);
 - `stability`: the reference's stress sweep of NetworkVI (status per case, rates per
-  precision next to the reference's);
+  precision next to the reference's); `--solvers` picks its nonlinear solvers by substring
+  (default the reference's two; `--solvers projection` runs the projected step,
+  `VariableProjection()`);
 - `report`: rebuild `report.md` and the figures from the CSVs in `--out`;
 - `all`: the three studies, then the report.
 
@@ -125,13 +127,14 @@ def run_energy(args) -> None:
 
 
 def run_stability(args) -> None:
-    from .stability import full_grid, quick_grid, stability_sweep
+    from .stability import full_grid, quick_grid, select_solvers, stability_sweep
 
-    problems = args.problems or None
-    if args.full:
-        cases = full_grid(problems) if problems else full_grid()
-    else:
-        cases = quick_grid(problems) if problems else quick_grid()
+    try:
+        solvers = select_solvers(args.solvers)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    grid = full_grid if args.full else quick_grid
+    cases = grid(args.problems, solvers=solvers) if args.problems else grid(solvers=solvers)
     path = os.path.join(args.out, CSV["stability"])
     bar = _progress(len(cases), "stability", not args.no_progress)
     rows = stability_sweep(cases, csv_path=path, progress=bar)
@@ -347,7 +350,10 @@ def main(argv=None) -> None:
     mode.add_argument("--full", action="store_true", help="the full grids (hours)")
     parser.add_argument("--out", default="benchmarks/results", help="output folder")
     parser.add_argument("--problems", nargs="*", help="subset of problems")
-    parser.add_argument("--solvers", nargs="*", help="substrings of solver names to keep")
+    parser.add_argument("--solvers", nargs="*",
+                        help="substrings of solver names to keep (stability: of "
+                             "LevenbergMarquardt, RegularisedNewton, projection; default the "
+                             "first two)")
     parser.add_argument("--repeats", type=int, default=None,
                         help="timing repeats after compilation (quick 2, full 5)")
     parser.add_argument("--long-steps", type=_long_steps, default=None,

@@ -15,6 +15,10 @@ precision and records, as the reference's benchmark does:
 The reference's "DogLeg" and "Newton/Backtracking" solvers map to our `LevenbergMarquardt`
 (a trust-region-like damped Gauss–Newton, with its own damping scale) and `RegularisedNewton`
 (the reference's `J + λI` Newton with Armijo backtracking, `λ = 16·sqrt(eps(T))` by default).
+One more solver, `"projection"`, is none of the reference's: the projected step
+(`formulation=VariableProjection()` with its `RoundoffNewton`, undamped, so `λ = 0`), which has
+only our convergence test. It is not in the default grids (which are the reference's); ask for
+it with `quick_grid(solvers=...)` or `python -m diffrax_vi.bench stability --solvers projection`.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from .. import problems as _problems
 from ..activations import elu, gelu, relu_k, tanh
 from ..ansatz.shallow import ShallowNetBasis
 from ..nonlinear import LevenbergMarquardt, RegularisedNewton
+from ..projection import RoundoffNewton, VariableProjection
 from ..quadrature import GaussLegendre
 from ..seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
 from ..solver import NetworkVI
@@ -49,6 +54,9 @@ __all__ = [
     "stability_sweep",
     "convergence_rates",
     "REFERENCE_RATES",
+    "SOLVERS",
+    "PROJECTED",
+    "select_solvers",
 ]
 
 # The reference's quick run (problems_and_benchmarks §2.6): converged / cases per precision.
@@ -68,7 +76,12 @@ INITIAL_GUESSES = {
     "hermite": HermiteExtrapolation,
     "previous": NoExtrapolation,
 }
-SOLVERS = {"LevenbergMarquardt": LevenbergMarquardt, "RegularisedNewton": RegularisedNewton}
+# The all-parameter solves' root finders (the reference's two solvers)...
+DAMPED = {"LevenbergMarquardt": LevenbergMarquardt, "RegularisedNewton": RegularisedNewton}
+# ...and the projected step: `VariableProjection()` on its default hidden layer, solved by its
+# own `RoundoffNewton` (no λ, no reference convergence test).
+PROJECTED = {"projection": RoundoffNewton}
+SOLVERS = {**DAMPED, **PROJECTED}
 PROBLEMS = {
     "harmonic_oscillator": _problems.harmonic_oscillator,
     "pendulum": _problems.pendulum,
@@ -86,10 +99,13 @@ class StabilityCase:
 
     **Fields:** `problem` (a key of `PROBLEMS`), `dt`, `dtype` (`"float16"`, `"float32"`,
     `"float64"`), `nodes` (Gauss–Legendre nodes R), `width` (S), `activation` (a key of
-    `ACTIVATIONS`), `solver` (a key of `SOLVERS`), `lam` (see `lam_value`),
-    `initial_guess` (a key of `INITIAL_GUESSES`), `steps` (10), `max_iterations` (the
-    per-step iteration cap), `acceptance` (`"strict"`: our convergence test, or
-    `"reference"`: the reference's, see `AbstractDampedNewton`'s `convergence`).
+    `ACTIVATIONS`), `solver` (a key of `SOLVERS`; `"projection"` is the projected step,
+    `VariableProjection()`), `lam` (see `lam_value`), `initial_guess` (a key of
+    `INITIAL_GUESSES`; the projected step's default hidden layer starts each step from the
+    previous curve, so it does not use it), `steps` (10), `max_iterations` (the per-step
+    iteration cap), `acceptance` (`"strict"`: our convergence test, or `"reference"`: the
+    reference's, see `AbstractDampedNewton`'s `convergence`; the projected step has only
+    `"strict"`).
     """
 
     problem: str
@@ -116,6 +132,13 @@ class StabilityCase:
             raise ValueError(f"dtype must be float16, float32 or float64; got {self.dtype!r}")
         if self.acceptance not in ("strict", "reference"):
             raise ValueError(f"acceptance must be strict or reference; got {self.acceptance!r}")
+        if self.solver in PROJECTED and self.acceptance != "strict":
+            raise ValueError(
+                f"the {self.solver!r} solver has only our convergence test (acceptance "
+                f"'strict'), got acceptance {self.acceptance!r}"
+            )
+        if self.solver in PROJECTED and self.lam not in (None, 0, 0.0):
+            raise ValueError(f"the {self.solver!r} solver is undamped (λ = 0), got lam={self.lam}")
         if not self.dt > 0 or self.steps < 1 or self.max_iterations < 1:
             raise ValueError(f"dt, steps and max_iterations must be positive: {self!r}")
 
@@ -124,7 +147,9 @@ class StabilityCase:
         """λ: the given one; else, for `RegularisedNewton`, the reference's `16·sqrt(eps(T))`
         (its `regularization_factor`, the shift of `J + λI`), and for `LevenbergMarquardt`
         its own default damping scale (`μ = λ‖F‖`: a different quantity, which the
-        reference's DogLeg has no counterpart of)."""
+        reference's DogLeg has no counterpart of); 0 for the projected step's undamped Newton."""
+        if self.solver in PROJECTED:
+            return 0.0
         if self.lam is not None:
             return self.lam
         if self.solver == "LevenbergMarquardt":
@@ -141,6 +166,15 @@ class StabilityCase:
         """The configured `NetworkVI`. `reference` (a possibly traced boolean) overrides
         `acceptance`, and `lam` (a possibly traced scalar) `lam_value`, so that cases that
         differ only in them share one compiled program."""
+        if self.solver in PROJECTED:
+            return NetworkVI(
+                ShallowNetBasis(ACTIVATIONS[self.activation], self.width),
+                GaussLegendre(self.nodes),
+                initial_trajectory=INITIAL_GUESSES[self.initial_guess](),
+                formulation=VariableProjection(),
+                root_finder=PROJECTED[self.solver](),
+                root_find_max_steps=self.max_iterations,
+            )
         lam = self.lam_value if lam is None else lam
         if reference is None:
             root_finder = SOLVERS[self.solver](lam=lam, convergence=self.acceptance)
@@ -168,12 +202,14 @@ def quick_grid(
     """The reference's quick grid: 3 dt × 3 precisions × 2 activations × 2 solvers per problem
     (36 cases), with its per-problem S and R, λ = 16·sqrt(eps(T)) for `RegularisedNewton`,
     the midpoint guess and its iteration cap (1000); run once per convergence test in
-    `acceptances` (ours, and the reference's, so that rates compare like with like)."""
+    `acceptances` (ours, and the reference's, so that rates compare like with like). A
+    solver of `PROJECTED` (`"projection"`) runs with our test only."""
     return [
         StabilityCase(p, dt, T, QUICK_NODES[p], QUICK_WIDTH[p], a, s,
                       max_iterations=max_iterations, acceptance=acc)
         for acc, p, T, a, s, dt in itertools.product(
             acceptances, problems, dtypes, activations, solvers, dts)
+        if not (s in PROJECTED and acc != "strict")
     ]
 
 
@@ -181,20 +217,53 @@ def full_grid(
     problems: Sequence[str] = ("harmonic_oscillator", "pendulum", "double_pendulum",
                                "toda_lattice"),
     max_iterations: int = 1000,
+    solvers: Sequence[str] = ("LevenbergMarquardt", "RegularisedNewton"),
 ) -> list[StabilityCase]:
     """The reference's full grid: dt ∈ {0.01, 0.1, 1, 10} × 3 precisions × R ∈ {4, 8, 16} ×
     S ∈ {4, 6, 8} × 6 activations × 2 solvers × λ ∈ {0, 1e-7, 1e-5, 1e-3, 16·sqrt(eps)} ×
     3 initial guesses. λ is `RegularisedNewton`'s shift; `LevenbergMarquardt` runs once,
-    with its own damping (11 664 cases per problem; hours)."""
+    with its own damping (11 664 cases per problem; hours). The projected step
+    (`"projection"`, when in `solvers`) runs once per network and dt, with the midpoint
+    guess only: its hidden layer is fixed and its steps start from the previous curve, so λ
+    and the initial guess do not enter (648 cases per problem, 162 compilations)."""
+    _check_solvers(solvers)
     lams = (0.0, 1e-7, 1e-5, 1e-3, None)
-    solvers = [("LevenbergMarquardt", None)] + [("RegularisedNewton", lam) for lam in lams]
+    chosen = []
+    for sv in solvers:
+        if sv == "RegularisedNewton":
+            chosen += [(sv, lam, g) for lam in lams for g in INITIAL_GUESSES]
+        elif sv in PROJECTED:
+            chosen.append((sv, None, "midpoint"))
+        else:
+            chosen += [(sv, None, g) for g in INITIAL_GUESSES]
+    # order of the reference's product: solver, then λ, then initial guess
     return [
         StabilityCase(p, dt, T, r, s, a, sv, lam, g, max_iterations=max_iterations)
-        for p, T, r, s, a, (sv, lam), g, dt in itertools.product(
+        for p, T, r, s, a, (sv, lam, g), dt in itertools.product(
             problems, ("float64", "float32", "float16"), (4, 8, 16), (4, 6, 8), ACTIVATIONS,
-            solvers, INITIAL_GUESSES, (0.01, 0.1, 1.0, 10.0),
+            chosen, (0.01, 0.1, 1.0, 10.0),
         )
     ]
+
+
+def _check_solvers(solvers: Sequence[str]) -> None:
+    unknown = [s for s in solvers if s not in SOLVERS]
+    if unknown:
+        raise ValueError(f"unknown solver(s) {unknown}; choose from {sorted(SOLVERS)}")
+
+
+def select_solvers(patterns: Sequence[str] | None) -> tuple[str, ...]:
+    """The sweep's solvers named by the command line's `--solvers` (substrings of the keys of
+    `SOLVERS`, as the work-precision study matches its entry names); `None` or empty: the
+    reference's two. Raises `ValueError` when a pattern matches no solver."""
+    if not patterns:
+        return tuple(DAMPED)
+    missing = [p for p in patterns if not any(p in name for name in SOLVERS)]
+    if missing:
+        raise ValueError(
+            f"--solvers {missing} match(es) no stability solver; choose from {sorted(SOLVERS)}"
+        )
+    return tuple(name for name in SOLVERS if any(p in name for p in patterns))
 
 
 def _switched(base: type) -> type:
@@ -210,7 +279,7 @@ def _switched(base: type) -> type:
     return Switched
 
 
-_SWITCHED = {name: _switched(cls) for name, cls in SOLVERS.items()}
+_SWITCHED = {name: _switched(cls) for name, cls in DAMPED.items()}
 
 
 class _Compiled:

@@ -15,6 +15,7 @@ from ..activations import gelu, tanh
 from ..ansatz.shallow import ShallowNetBasis
 from ..methods import CGVI
 from ..nonlinear import LevenbergMarquardt
+from ..projection import VariableProjection
 from ..quadrature import GaussLegendre
 from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep
 from ..solver import NetworkVI
@@ -78,11 +79,13 @@ PEERS_ADAPTIVE = ("Tsit5", "Dopri8")
 
 
 def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
-    """NetworkVI variants. Quick has two tanh networks: `warm` (the defaults with a warm start
-    from the previous step's curve) and `fast` (the opt-in settings of the how-to "A faster
+    """NetworkVI variants. Quick has three tanh networks: `warm` (the defaults with a warm start
+    from the previous step's curve), `fast` (the opt-in settings of the how-to "A faster
     step": the previous step's neurons refitted as seed, the closed-form Jacobian, a solve
-    ended by the first exact iteration whose outputs settled). Full adds the reference's
-    per-step seed (extrapolated trajectory + OGA) and a GELU network."""
+    ended by the first exact iteration whose outputs settled) and `projection` (the projected
+    step, `formulation=VariableProjection()` with its defaults: the fixed `UniformLayer()`
+    hidden layer and `RoundoffNewton()`). Full adds the reference's per-step seed
+    (extrapolated trajectory + OGA) and a GELU network."""
     basis = ShallowNetBasis(tanh, setting.width)
     quad = GaussLegendre(setting.nodes)
     label = f"tanh{setting.width} R{setting.nodes}"
@@ -94,6 +97,8 @@ def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
                         root_finder=LevenbergMarquardt(jacobian="auto", settle=0,
                                                        otol=2.0**-39)),
               family="ours"),
+        Fixed(f"NetworkVI {label} projection",
+              NetworkVI(basis, quad, formulation=VariableProjection()), family="ours"),
     ]
     if full:
         out += [
