@@ -329,7 +329,8 @@ class RoundoffNewton(optx.AbstractRootFinder):
     `floor` of the root the full step is always taken. The solve ends as converged when
     `max|F| ≤ ftol · scale` (`options["scale"]`), or when `max|F| ≤ floor · scale` and the
     Newton update has stopped shrinking (rounding has taken over). No tolerance on the
-    unknowns is needed: quadratic convergence reaches the floor in a few iterations. It fails
+    unknowns is needed: quadratic convergence reaches the floor in a few iterations. Every
+    solve makes at least one update, whatever the start's residual. It fails
     (`nonlinear_divergence`) after `max_stalls` line searches in a row find no decrease, and
     at the iteration cap.
 
@@ -358,12 +359,14 @@ class RoundoffNewton(optx.AbstractRootFinder):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del aux_struct, tags, f_struct
+        del options
         f, _ = fn(y, args)
         flat = ravel_pytree(f)[0]
-        scale = jnp.asarray(options.get("scale", 1.0), flat.dtype)
-        small = jnp.max(jnp.abs(flat)) <= self._tolerance("ftol", flat.dtype) * scale
         inf = jnp.full((), jnp.inf, flat.dtype)
-        return _NewtonState(flat, inf, small, jnp.array(False), jnp.array(0, jnp.int32))
+        # Never converged at the start: in low precision the tolerance can be as large as the
+        # start's residual, and a step must make at least one Newton update.
+        no = jnp.array(False)
+        return _NewtonState(flat, inf, no, no, jnp.array(0, jnp.int32))
 
     def step(self, fn, y, args, options, state, tags):
         del tags

@@ -328,3 +328,21 @@ def test_seed_layer_refits_every_step():
     assert sol.result == diffrax.RESULTS.successful
     assert int(sol.solver_state.warm_starts) == 0
     assert max_relative_error(problem, sol) <= 1e-11
+
+
+def test_float16_makes_a_newton_update_on_every_step():
+    # In float16 the tolerance (64 eps, about 0.06 of the residual scale) can be as large as
+    # the start's residual: the step must still solve, not accept its start.
+    problem = problems.harmonic_oscillator(dtype=jnp.float16)
+    solver = dvi.NetworkVI(
+        dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
+        formulation=dvi.VariableProjection(), iteration_log=10,
+    )
+    f16 = jnp.float16
+    sol = diffrax.diffeqsolve(
+        problem.term, solver, f16(0), f16(1), f16(0.1), problem.y0, args=problem.args,
+        saveat=diffrax.SaveAt(ts=jnp.asarray(problem.ts, f16), solver_state=True),
+    )
+    assert sol.ys[0].dtype == jnp.float16
+    assert np.all(np.asarray(sol.solver_state.iteration_log) >= 1)
+    assert max_relative_error(problem, sol) <= 1e-2
