@@ -6,11 +6,12 @@ slopes at the `R` nodes, its two end values), while the network has `3S` paramet
 coordinate: solving for all of them (`FreeEndpoints`) leaves a manifold of roots, and a damped
 Newton method stops on a least-squares floor somewhere on it.
 
-`VariableProjection` splits the parameters. The hidden layer `(w, β)` comes from the step's
-seed and spans the feature functions `σ(w_i τ + β_i)`; the step then solves the free-endpoint
-equations for the curve *in that span*, exactly. Because nearly collinear features make the
-span numerically smaller than `S`, it is first orthonormalised in the norm the quadrature sees
-(a thin SVD of the weighted data matrix of the features, per coordinate), and only its leading
+`VariableProjection` splits the parameters. A hidden layer `(w, β)`, chosen by a rule
+(`UniformLayer`, the default, is fixed; `FirstSeedLayer` and `SeedLayer` take the seed fit's),
+spans the feature functions `σ(w_i τ + β_i)`; the step then solves the free-endpoint equations
+for the curve *in that span*, exactly. Because nearly collinear features make the span
+numerically smaller than `S`, it is first orthonormalised in the norm the quadrature sees (a
+thin SVD of the weighted data matrix of the features, per coordinate), and only its leading
 `k` directions are kept (`k = min(S, R + 1)` by default: a curve space as large as the one of
 the classical cGVI of degree `R`, which `R` Gauss nodes determine). The unknowns are then `k`
 coefficients per coordinate and `p_{n+1}`: a square system with an isolated root, which plain
@@ -19,8 +20,8 @@ Newton solves to round-off in a few iterations (`RoundoffNewton`).
 The output weights follow from the coefficients, so the converged step is a network again
 (dense output, warm starts and the next step's seed read it as one). Measured at converged
 oscillator steps, the hidden-parameter equations of the all-parameter system hold there to
-round-off as well: the projected root is one of the roots the all-parameter solve wanders
-among, the best-conditioned one.
+round-off as well: the projected root is a root of the all-parameter system, along which the
+hidden layer is free. The accuracy of the step is the accuracy of the span.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from jaxtyping import Array
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
-from .linalg import solve
+from .linalg import _work_dtype, solve
 
 __all__ = [
     "AbstractHiddenLayer",
@@ -50,10 +51,6 @@ __all__ = [
     "UniformLayer",
     "VariableProjection",
 ]
-
-
-def _work_dtype(dtype):
-    return jnp.float32 if jnp.finfo(dtype).bits < 32 else dtype
 
 
 class ProjectedSpan(eqx.Module):
@@ -168,7 +165,7 @@ class VariableProjection(FreeEndpoints):
         ):
             raise ValueError(f"rtol must be None or a number in [0, 1), got {self.rtol!r}")
 
-    def check_basis(self, basis: AbstractBasis, num_nodes: int) -> None:
+    def check_basis(self, basis: AbstractBasis) -> None:
         """Refuse an ansatz the projection cannot split, or a rank above the width."""
         if not isinstance(basis, ShallowNetBasis) or basis.mirrored:
             raise ValueError(
@@ -181,7 +178,6 @@ class VariableProjection(FreeEndpoints):
                 f"rank={self.rank} exceeds the network's width {basis.width}: the span of "
                 "its features has at most width directions"
             )
-        del num_nodes
 
     def span_rank(self, basis: ShallowNetBasis, num_nodes: int) -> int:
         """`k`: the directions kept per coordinate."""

@@ -292,7 +292,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 f"{self.error_estimate!r}"
             )
         if isinstance(self.formulation, VariableProjection):
-            self.formulation.check_basis(self.basis, self.quadrature.num_nodes)
+            self.formulation.check_basis(self.basis)
             if not isinstance(self._root_finder, RoundoffNewton):
                 raise ValueError(
                     "VariableProjection() solves a square system with an isolated root: use "
