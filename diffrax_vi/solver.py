@@ -695,9 +695,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # A failed step's end state is never passed off as data: the steps before it stay,
         # this one is NaN (with `throw=False`), and `report` says where and why it failed.
         failed = result != diffrax.RESULTS.successful
+        # A factor of NaN (failed) or 1: derivatives through a failed step are NaN too, and
+        # those of a successful one are untouched (a `where` over `NaN * q1` would leak NaN
+        # into them).
         nan = jnp.asarray(jnp.nan, ctx.q0.dtype)
-        q1 = jnp.where(failed, nan, q1)
-        p1 = jnp.where(failed, nan, p1)
+        poison = jnp.where(failed, nan, jnp.ones((), ctx.q0.dtype))
+        q1 = q1 * poison
+        p1 = p1 * poison
 
         def curve(tau):
             return self.formulation.position(ctx.basis, theta, ctx.q0, q1, tau)

@@ -141,6 +141,23 @@ def test_forced_failure_is_reported():
         jax.block_until_ready(solve(problem, solver, throw=True).ys)
 
 
+def test_derivatives_through_a_failed_step_are_nan():
+    # issue 29: a failed step's forward-mode derivative was exactly zero
+    problem = problems.harmonic_oscillator()
+    solver = shallow(dvi.tanh, 10, 8, root_find_max_steps=1)
+
+    def end(q0):
+        sol = diffrax.diffeqsolve(
+            problem.term, solver, 0.0, 0.3, 0.1, (q0, jnp.zeros(1)), throw=False,
+            adjoint=diffrax.ForwardMode(),
+        )
+        return sol.ys[0][-1], sol.ys[1][-1]
+
+    value, tangent = jax.jvp(end, (jnp.array([0.5]),), (jnp.array([1.0]),))
+    assert np.all(np.isnan(np.asarray(value[0]))) and np.all(np.isnan(np.asarray(tangent[0])))
+    assert np.all(np.isnan(np.asarray(tangent[1])))
+
+
 def test_nan_is_never_accepted():
     problem = problems.harmonic_oscillator()
     y0 = (jnp.array([jnp.nan]), jnp.array([0.0]))
