@@ -106,8 +106,11 @@ class UniformLayer(AbstractHiddenLayer):
         if not (isinstance(self.scale, int | float) and not isinstance(self.scale, bool)
                 and self.scale > 0 and math.isfinite(self.scale)):
             raise ValueError(f"scale must be a positive number, got {self.scale!r}")
-        lo, hi = self.centres
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        pair = isinstance(self.centres, tuple) and len(self.centres) == 2 and all(
+            isinstance(c, int | float) and not isinstance(c, bool) for c in self.centres
+        )
+        if not (pair and all(map(math.isfinite, self.centres))
+                and self.centres[0] < self.centres[1]):
             raise ValueError(f"centres must be a finite increasing pair, got {self.centres!r}")
 
     def parameters(self, basis: ShallowNetBasis, dim: int, dtype) -> Array:
@@ -349,6 +352,19 @@ class RoundoffNewton(optx.AbstractRootFinder):
     rtol: float | None = None
     atol: float | None = None
     norm: Callable = optx.max_norm
+
+    def __check_init__(self):
+        for name in ("ftol", "floor"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and not isinstance(value, bool)
+                    and value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a positive number (of eps), got {value!r}")
+        if self.floor < self.ftol:
+            raise ValueError(f"floor ({self.floor}) must be at least ftol ({self.ftol})")
+        for name in ("max_backtracks", "max_stalls"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
     def _tolerance(self, name: str, dtype) -> float:
         return getattr(self, name) * float(jnp.finfo(dtype).eps)

@@ -293,14 +293,20 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
         if isinstance(self.formulation, VariableProjection):
             self.formulation.check_basis(self.basis)
-            if not isinstance(self._root_finder, RoundoffNewton):
+            if self.reuse_neurons or isinstance(self.initial_trajectory, PreviousStep):
+                raise ValueError(
+                    "VariableProjection() carries its hidden layer from step to step by its "
+                    "`hidden` rule; reuse_neurons and PreviousStep() belong to the "
+                    "all-parameter formulations"
+                )
+            if not isinstance(self.root_finder, RoundoffNewton):
                 raise ValueError(
                     "VariableProjection() solves a square system with an isolated root: use "
                     f"root_finder=RoundoffNewton() (the default), got {self.root_finder!r}"
                 )
         if (
-            isinstance(self._root_finder, AbstractDampedNewton)
-            and self._root_finder.jacobian == "structured"
+            isinstance(self.root_finder, AbstractDampedNewton)
+            and self.root_finder.jacobian == "structured"
             and not (isinstance(self.formulation, FreeEndpoints) and self.basis.coordinatewise)
         ):
             raise ValueError(
@@ -339,10 +345,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             raise ValueError(
                 f"root_find_max_steps must be a positive integer, got {self.root_find_max_steps!r}"
             )
-
-    @property
-    def _root_finder(self) -> optx.AbstractRootFinder:
-        return self.root_finder
 
     @property
     def _companion_root_finder(self) -> optx.AbstractRootFinder:
@@ -391,7 +393,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """Whether the fresh seed fit is left to the root finder: where the seed may be carried
         over from the previous step, the fit is the root finder's fallback, evaluated (once in
         the compiled step) where the carried seed is unusable or its solve fails."""
-        return isinstance(self._root_finder, AbstractDampedNewton) and (
+        return isinstance(self.root_finder, AbstractDampedNewton) and (
             isinstance(self.initial_trajectory, PreviousStep) or self._refits()
         )
 
@@ -622,7 +624,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         scale = _residual_scale(ctx)
         sol = optx.root_find(
             form.reduced_residual,
-            self._root_finder,
+            self.root_finder,
             z0,
             (ctx, span),
             options=dict(scale=scale, jacobian=form.reduced_jacobian),
@@ -635,7 +637,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         q1, p1 = form.projected_end_state(z, span)
         residual = jax.lax.stop_gradient(jnp.max(jnp.abs(sol.state.f)).astype(ctx.q0.dtype))
         eps = float(jnp.finfo(ctx.q0.dtype).eps)
-        tolerance = (self._root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
+        tolerance = (self.root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
         n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
         return theta, (q1, p1), n, from_root_find(sol.result), residual, tolerance
 
@@ -646,7 +648,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # refitted neurons) is unusable, and restarts there once where the solve from the
         # carried seed fails (`restart_failed`).
         restart_inputs = jax.lax.stop_gradient(cold_inputs)
-        jacobian = _jacobian_option(self._root_finder, self.formulation, ctx)
+        jacobian = _jacobian_option(self.root_finder, self.formulation, ctx)
         options = dict(
             scale=_residual_scale(ctx),
             outputs=lambda x: self.formulation.end_state(x, ctx),
@@ -661,7 +663,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             seed = jax.tree_util.tree_map(lambda v: jnp.where(carried, v, 0), seed)
         sol = optx.root_find(
             lambda x, a: self.formulation.residual(x, a[0]),
-            self._root_finder,
+            self.root_finder,
             seed,
             (ctx, restart_inputs, carried, fit_inputs if lazy else None),
             options=options,
@@ -761,9 +763,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def _final_residual(self, sol, ctx: StepContext) -> tuple[Array, Array]:
         """`max|F|` where the step's solve stopped, and the residual it needed to reach."""
         dtype = ctx.q0.dtype
-        if isinstance(self._root_finder, AbstractDampedNewton):
+        if isinstance(self.root_finder, AbstractDampedNewton):
             f = sol.state.f
-            ftol = self._root_finder._tols(dtype)["ftol"]
+            ftol = self.root_finder._tols(dtype)["ftol"]
             tolerance = (ftol * _residual_scale(ctx)).astype(dtype)
         else:
             f = ravel_pytree(self.formulation.residual(sol.value, ctx))[0]

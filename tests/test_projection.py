@@ -311,6 +311,27 @@ def test_hidden_layer_rules_are_checked():
         dvi.UniformLayer(scale=0.0)
     with pytest.raises(ValueError, match="centres"):
         dvi.UniformLayer(centres=(1.0, -1.0))
+    with pytest.raises(ValueError, match="centres"):
+        dvi.UniformLayer(centres=(0.0, 1.0, 2.0))
+
+
+def test_roundoff_newton_settings_are_checked():
+    with pytest.raises(ValueError, match="ftol"):
+        dvi.RoundoffNewton(ftol=0)
+    with pytest.raises(ValueError, match="floor"):
+        dvi.RoundoffNewton(ftol=64, floor=8)
+    with pytest.raises(ValueError, match="max_stalls"):
+        dvi.RoundoffNewton(max_stalls=0)
+
+
+def test_projection_refuses_the_all_parameter_seed_options():
+    basis = dvi.ShallowNetBasis(dvi.tanh, 10)
+    with pytest.raises(ValueError, match="all-parameter"):
+        dvi.NetworkVI(basis, formulation=dvi.VariableProjection(), reuse_neurons=True)
+    with pytest.raises(ValueError, match="all-parameter"):
+        dvi.NetworkVI(
+            basis, formulation=dvi.VariableProjection(), initial_trajectory=dvi.PreviousStep()
+        )
 
 
 def test_uniform_layer_is_centred_where_asked():
