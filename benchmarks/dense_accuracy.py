@@ -27,7 +27,10 @@ def main() -> None:
     omega = np.sqrt(0.5)
     basis = dvi.ShallowNetBasis(dvi.tanh, 10)
     solvers = {
-        "free endpoints": dvi.NetworkVI(basis, dvi.GaussLegendre(8)),
+        "default (projected step)": dvi.NetworkVI(basis, dvi.GaussLegendre(8)),
+        "free endpoints (all-parameter)": dvi.NetworkVI(
+            basis, dvi.GaussLegendre(8), formulation=dvi.FreeEndpoints()
+        ),
         "interpolating endpoints": dvi.NetworkVI(
             basis,
             dvi.GaussLegendre(8),

@@ -78,7 +78,8 @@ def main():
         rows = {}
         for backend in ("autodiff", "sympy"):
             kwargs = {} if guess is None else dict(initial_guess=guess)
-            solver = dvi.NetworkVI(make(backend), dvi.GaussLegendre(8), **kwargs)
+            solver = dvi.NetworkVI(make(backend), dvi.GaussLegendre(8),
+                                   **{"formulation": dvi.FreeEndpoints(), **kwargs})
             rows[backend] = measure(problem, solver, args.repeats)
         diff = max(
             float(np.max(np.abs(np.asarray(a) - np.asarray(b))))

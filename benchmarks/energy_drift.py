@@ -13,7 +13,8 @@ per configuration:
 - the per-step energy change `|ΔE|/|E₀|` and the accepted residual `max|F|` (median, 99th
   percentile, largest), and the correlation of their logarithms.
 
-Configurations (`--configs`): `default` (OGA1d seed on every step), `oga2d` (the OGA2d preset
+Configurations (`--configs`): `default` (the solver's defaults: the projected step),
+`all` (the all-parameter formulation, OGA1d seed on every step), `oga2d` (the OGA2d preset
 as seed), `fast` (`benchmarks/speed.py`'s fast configuration: refitted neurons, solve ended at
 the first settled exact iteration), its two halves on their own: `settle0` (OGA seed, early
 stop) and `refit` (refitted neurons, the default stop), `refit_limited` (the same, refitting
@@ -62,7 +63,8 @@ def solver_for(config: str, width: int = 10, nodes: int = 8):
     if config == "cgvi":
         return dvi.CGVI(7, dvi.GaussLegendre(8))
     early_stop = dvi.LevenbergMarquardt(jacobian="auto", settle=0, otol=2.0**-39)
-    options = {"default": {}, "oga2d": dict(initial_guess=dvi.OGA2d()),
+    options = {"default": {}, "all": dict(formulation=dvi.FreeEndpoints()),
+               "oga2d": dict(initial_guess=dvi.OGA2d()),
                "fast": SPEED_CONFIGS["fast"],
                "settle0": dict(root_finder=early_stop),
                # the default seed and output tolerance, fewer iterations at the floor

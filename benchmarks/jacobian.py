@@ -47,7 +47,8 @@ def _timed(fn, x, repeats):
 def measure(name: str, repeats: int) -> dict:
     width, nodes = FIXTURES[name]
     problem = getattr(problems, name)(dtype=jnp.float64)
-    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(nodes))
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(nodes),
+                           formulation=dvi.FreeEndpoints())
     ctx = solver._context(problem.term, 0.0, 0.1, problem.y0, problem.args)
     dim = ctx.q0.shape[0]
     theta = 0.5 * jax.random.normal(jax.random.PRNGKey(0), (solver.basis.num_params(), dim))

@@ -5,7 +5,8 @@ first call (compile + run) and, with `--again`, of a second call.
 
 Configurations: `fast` (refitted neurons, closed-form Jacobian, settle=0), `guarded`
 (`fast`, refitting only after steps solved in at most 12 iterations), `default`
-(`jacobian="auto"`, otherwise the defaults), `fwd` (the defaults) and `long-run` (refits
+(all-parameter, `jacobian="auto"`), `fwd` (all-parameter, otherwise the defaults),
+`projected` (the solver's defaults: the projected step) and `long-run` (refits
 only from steps accepted at a residual of at most 2048·eps, closed-form Jacobian: the energy
 study's long-run settings). `--retry` steps with `diffrax_vi.RetryFailedSteps()` instead of
 `ConstantStepSize()`: a failed step is split into smaller pieces instead of ending the run.
@@ -57,7 +58,8 @@ FAST = dict(reuse_neurons=True,
             root_finder=dvi.LevenbergMarquardt(jacobian="auto", settle=0, otol=2.0**-39))
 CONFIGS = {"fast": FAST, "guarded": dict(FAST, refit_iterations=12),
            "default": dict(root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
-           "fwd": {},
+           "fwd": dict(formulation=dvi.FreeEndpoints()),
+           "projected": {},
            "long-run": dict(reuse_neurons=True, refit_residual=2048 * EPS,
                             root_finder=dvi.LevenbergMarquardt(jacobian="auto"))}
 

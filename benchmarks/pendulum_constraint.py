@@ -36,7 +36,8 @@ from diffrax_vi import problems  # noqa: E402
 
 
 def network(width: int) -> dvi.NetworkVI:
-    return dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(8))
+    return dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(8),
+                         formulation=dvi.FreeEndpoints())
 
 
 def run_steps(solver, problem, h: float, steps: int, projection: str = "none"):

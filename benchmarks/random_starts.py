@@ -1,9 +1,10 @@
 """How often a NetworkVI solve fails over random harmonic-oscillator starts, per network width.
 
 200 starts (seeded): amplitude uniform in (0.1, 2), phase uniform; 10 steps of h = 0.1 with
-`NetworkVI(ShallowNetBasis(tanh, width), GaussLegendre(8))` and default settings. Prints, per
-width, the failures as `(start, steps completed, residual where the solve stopped)` and the
-median largest error of q relative to the amplitude over the successful starts.
+`NetworkVI(ShallowNetBasis(tanh, width), GaussLegendre(8))`, the all-parameter step
+(`formulation=FreeEndpoints()`) with its default settings. Prints, per width, the failures
+as `(start, steps completed, residual where the solve stopped)` and the median largest error
+of q relative to the amplitude over the successful starts.
 
     PYTHONPATH=. .venv/bin/python benchmarks/random_starts.py 8 10 12 [--preset OGA1dStable]
 """
@@ -34,7 +35,8 @@ def failures_for_width(width: int, starts, h: float = 0.1, steps: int = 10, pres
     base = problems.harmonic_oscillator()
     ts = jnp.linspace(0.0, steps * h, steps + 1)
     seed = {} if preset is None else dict(initial_guess=getattr(dvi, preset)())
-    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(8), **seed)
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(8),
+                           formulation=dvi.FreeEndpoints(), **seed)
     run = eqx.filter_jit(lambda y0: diffrax.diffeqsolve(
         base.term, solver, 0.0, steps * h, h, y0,
         saveat=diffrax.SaveAt(ts=ts, solver_state=True), throw=False))

@@ -37,6 +37,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
+from .activations import ReLUk, gelu, sigmoid, tanh
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
@@ -88,8 +89,11 @@ class FirstSeedLayer(AbstractHiddenLayer):
 class UniformLayer(AbstractHiddenLayer):
     """A fixed hidden layer in the step's local time: neuron `i` of `S` has weight
     `±scale` (alternating signs) and is centred (`w τ + β = 0`) at `τ_i`, the centres spread
-    uniformly over `centres`. The same layer on every step and in every coordinate, so the
-    step needs no seed fit and its result is a continuous function of the state.
+    uniformly over `centres` (for `relu_k`, the neurons centred outside the step face it). The
+    same layer on every step and in every coordinate, so the step needs no seed fit and its
+    result is a continuous function of the state. Designed for the activations of `suits`:
+    with equal `|w|`, periodic units span two functions only, and `elu` or `relu_k(1)` little
+    more than the linear ones.
 
     **Arguments:**
 
@@ -113,13 +117,26 @@ class UniformLayer(AbstractHiddenLayer):
                 and self.centres[0] < self.centres[1]):
             raise ValueError(f"centres must be a finite increasing pair, got {self.centres!r}")
 
+    @staticmethod
+    def suits(activation) -> bool:
+        """Whether the layer's features span a rich enough space on a step for `activation`
+        (`tanh`, `sigmoid`, `gelu`, `relu_k` with `k >= 2`)."""
+        if isinstance(activation, ReLUk):
+            return activation.k >= 2
+        return activation in (tanh, sigmoid, gelu)
+
     def parameters(self, basis: ShallowNetBasis, dim: int, dtype) -> Array:
         """The network parameters `(α = 0, w, β)`, each `(S, D)`."""
         width = basis.width
         lo, hi = self.centres
         step = (hi - lo) / max(width - 1, 1)
         centres = np.array([lo + step * i for i in range(width)])
-        w = self.scale * np.where(np.arange(width) % 2 == 0, 1.0, -1.0)
+        signs = np.where(np.arange(width) % 2 == 0, 1.0, -1.0)
+        if isinstance(basis.activation, ReLUk):
+            # a rectified unit is zero on one side of its centre: the neurons centred outside
+            # the step face it, or half of them would vanish there
+            signs = np.where(centres <= 0, 1.0, np.where(centres >= 1, -1.0, signs))
+        w = self.scale * signs
         columns = np.stack([w, -w * centres])  # (2, S)
         w_beta = jnp.asarray(np.repeat(columns[:, :, None], dim, axis=2), dtype)
         return ShallowNetBasis.join(jnp.zeros((width, dim), dtype), w_beta[0], w_beta[1])
@@ -304,11 +321,59 @@ class VariableProjection(FreeEndpoints):
         bottom = jnp.concatenate([jpc, jnp.zeros((dim, dim), dtype)], axis=1)
         return jnp.concatenate([top, bottom], axis=0)
 
-    def projected_end_state(self, z, span: ProjectedSpan) -> tuple[Array, Array]:
+    def dense_position(self, basis, theta, q0, q1, tau):
+        """The network curve plus linear terms that make it hit `q_n` at `τ = 0` and
+        `q_{n+1}` at `τ = 1` (which the end correction of a first-order Lagrangian moves)."""
+        ends = jnp.array([0.0, 1.0], q0.dtype)
+        at_ends = jax.vmap(basis.evaluate, in_axes=(None, 0))(theta, ends)
+        q = basis.evaluate(theta, tau) + (1 - tau) * (q0 - at_ends[0]) + tau * (q1 - at_ends[1])
+        # exactly the step's ends there (the sum above is only within rounding of them), with
+        # the curve's derivative (`q - stop_gradient(q)` is an exact zero)
+        exact = jax.lax.stop_gradient(jnp.where(tau == 0, q0, jnp.where(tau == 1, q1, q)))
+        return exact + (q - jax.lax.stop_gradient(q))
+
+    def projected_end_state(
+        self, z, span: ProjectedSpan, ctx: StepContext | None = None
+    ) -> tuple[Array, Array]:
         """`(q_{n+1}, p_{n+1})` from the span coordinates (`q_h(1)` from the orthonormal
-        directions, without the cancellation of large output weights)."""
+        directions, without the cancellation of large output weights). Given the step's
+        `ctx`, a Lagrangian linear in the velocities also gets `q_{n+1}` moved onto its
+        primary constraint `ϑ(q_{n+1}) = p_{n+1}` (`first_order_end_correction`)."""
         c, p1 = z
-        return jnp.einsum("dk,kd->d", span.g1, c), p1
+        q1 = jnp.einsum("dk,kd->d", span.g1, c)
+        if ctx is None:
+            return q1, p1
+        return q1 + first_order_end_correction(ctx, q1, p1), p1
+
+
+def first_order_end_correction(ctx: StepContext, q1: Array, p1: Array) -> Array:
+    """The change of `q_{n+1}` that a first-order Lagrangian's end state needs; zero for
+    any other.
+
+    Where `ϑ = ∂L/∂v` does not depend on `v` (an IODE such as the degenerate pendulum), the
+    flow keeps `p = ϑ(t, q)`. The step's `p_{n+1}` is the natural boundary value of the
+    discrete action and inherits its superconvergence, but the coordinates that `ϑ` reads
+    enter the action undifferentiated: `q_h(1)` extrapolates them from the nodes, with the
+    span's own (first-order) error. One Gauss–Newton update, `Δq = (∂ϑ/∂q)^+ (p_{n+1} −
+    ϑ(q_h(1)))`, takes them from `p_{n+1}` instead and leaves the others as they are. When
+    `∂ϑ/∂v` has any nonzero entry at the end point the change is zero.
+    """
+    t = ctx.t + ctx.h
+    v = jnp.zeros_like(q1)
+
+    def theta(q, v_):
+        return ctx.term.momentum(t, q, v_, ctx.args)
+
+    jq, jv = jax.lax.stop_gradient(jax.jacfwd(theta, argnums=(0, 1))(q1, v))
+    first_order = jnp.all(jv == 0)
+    work = _work_dtype(q1.dtype)
+    # (∂ϑ/∂q)^+ by SVD (`jnp.linalg.pinv` would put a float64 constant into float32 steps)
+    u, sv, vt = jnp.linalg.svd(jq.astype(work))
+    kept = sv > 10 * max(jq.shape) * jnp.finfo(work).eps * sv[0]
+    inv = jnp.where(kept, 1 / jnp.where(kept, sv, 1), 0)
+    misfit = (p1 - theta(q1, v)).astype(work)
+    step = (vt.T @ (inv * (u.T @ misfit))).astype(q1.dtype)
+    return jnp.where(first_order, step, jnp.zeros_like(step))
 
 
 class _NewtonState(eqx.Module):

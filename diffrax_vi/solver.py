@@ -29,19 +29,14 @@ from .interpolation import NetworkInterpolation
 from .lazy import unless_all_skip
 from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
 from .oga import OGA, OGA1d, OGAReference
-from .projection import FirstSeedLayer, RoundoffNewton, UniformLayer, VariableProjection
+from .projection import RoundoffNewton, UniformLayer, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport, from_root_find
-from .seeding.fit import (
-    AbstractParameterSeed,
-    fit_problem,
-    refit_output_weights,
-    seed_parameters,
-    with_constant_grid,
-)
+from .seeding.fit import AbstractParameterSeed
+from .seeding.policy import Seed, SeedPolicy, SeedRecord
+from .seeding.policy import residual_scale as _residual_scale
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
-    HermiteExtrapolation,
     IntegratorExtrapolation,
     PreviousStep,
     StepHistory,
@@ -54,10 +49,12 @@ __all__ = ["NetworkVI", "NetworkVIState"]
 class NetworkVIState(eqx.Module):
     """What `NetworkVI` carries from step to step (read it with `SaveAt(solver_state=True)`).
 
-    - `theta`: the last converged parameters; before the first step they are zeros and
-      `fresh` is true (the first step is always seeded by a trajectory fit).
-    - `h_prev`: the length of the step `theta` belongs to.
-    - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
+    - `seed`: what the seed policy carries (`diffrax_vi.seeding.policy.SeedRecord`), also
+      read as the state's own attributes:
+      - `theta`: the last converged parameters; before the first step they are zeros and
+        `fresh` is true (the first step is always seeded by a trajectory fit).
+      - `h_prev`: the length of the step `theta` belongs to.
+      - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
     - `iterations`: total nonlinear iterations over all accepted steps.
     - `last_iterations`, `max_iterations`: of the last step, and the most of any step.
     - `steps`: number of steps taken.
@@ -77,10 +74,7 @@ class NetworkVIState(eqx.Module):
       steps this is the failed step; `diffrax_vi.describe_failure(sol)` prints it.
     """
 
-    theta: PyTree
-    fresh: Array
-    h_prev: Array
-    history: StepHistory
+    seed: SeedRecord
     iterations: Array
     last_iterations: Array
     max_iterations: Array
@@ -92,6 +86,22 @@ class NetworkVIState(eqx.Module):
     iteration_log: Array
     report: StepReport
 
+    @property
+    def theta(self) -> PyTree:
+        return self.seed.theta
+
+    @property
+    def fresh(self) -> Array:
+        return self.seed.fresh
+
+    @property
+    def h_prev(self) -> Array:
+        return self.seed.h_prev
+
+    @property
+    def history(self) -> StepHistory:
+        return self.seed.history
+
 
 class NetworkVI(diffrax.AbstractImplicitSolver):
     """Variational integrator whose trial trajectory on each step is a neural network (or
@@ -99,14 +109,16 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     Per step `[t_n, t_n + h]` the trajectory of each coordinate is built from the ansatz
     `N(τ; θ)` (`τ ∈ [0, 1]`) by the `formulation`, and its unknowns solve the discrete
-    variational equations of the quadrature-approximated action: with free endpoints (the
-    default) the unknowns are `θ` and `p_{n+1}`, with stationarity plus continuity
-    `q_h(0) = q_n` as equations, then `q_{n+1} = q_h(1)`; with interpolating endpoints the
-    curve passes through `q_n` and `q_{n+1}` by construction and the unknowns are `θ` and
-    `q_{n+1}`. The state is `y = (q, p)`, the term a `LagrangianTerm` or `IODETerm`, and the
-    working precision is the dtype of `y0`.
+    variational equations of the quadrature-approximated action. By default (a shallow
+    network) the step is variationally projected: the curve is sought in the span of a fixed
+    hidden layer's features, with free endpoints (`q_h(0) = q_n` an equation, `q_{n+1} =
+    q_h(1)`, `p_{n+1}` an unknown), a square system with an isolated root that plain Newton
+    solves to round-off. The reference's all-parameter formulations (`FreeEndpoints`,
+    `InterpolatingEndpoints`) solve for every network parameter instead. The state is
+    `y = (q, p)`, the term a `LagrangianTerm` or `IODETerm`, and the working precision is the
+    dtype of `y0`.
 
-    The Newton solve of each step starts from a seed: a cheap trajectory estimate
+    The all-parameter solve of each step starts from a seed: a cheap trajectory estimate
     (`initial_trajectory`) fitted by `initial_guess` (the Orthogonal Greedy Algorithm for
     shallow networks), or the previous step's curve continued (`PreviousStep`). A step whose
     solve does not converge ends the solve with one of the step failures of
@@ -118,11 +130,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `basis`: the ansatz, e.g. `ShallowNetBasis(diffrax_vi.tanh, 10)`, `DenseNetBasis`,
       `SymbolicAnsatz`, `LagrangeBasis`.
     - `quadrature`: rule on `[0, 1]` for the discrete action. Default `GaussLegendre(8)`.
-    - `formulation`: `FreeEndpoints()` (default), `InterpolatingEndpoints()`, or
-      `VariableProjection()`: free endpoints solved for the output weights on the span of the
-      seed's hidden layer, a square system with an isolated root (shallow networks).
+    - `formulation`: `VariableProjection()` (free endpoints on the span of a hidden layer's
+      features), `FreeEndpoints()` or `InterpolatingEndpoints()` (all parameters unknown).
+      Default `None`: `VariableProjection()` for a `ShallowNetBasis` without mirrored pairs
+      whose activation its fixed layer suits (`UniformLayer.suits`), unless an option of the
+      all-parameter step is given (a damped root finder, `reuse_neurons`, `PreviousStep()`,
+      or a seed-fit option: `initial_guess`, `bias_interval`, `dict_amount`); otherwise
+      `FreeEndpoints()`. The seed-fit options apply to the all-parameter step (and to
+      `VariableProjection`'s `SeedLayer`/`FirstSeedLayer`).
     - `initial_trajectory`: `IntegratorExtrapolation()` (default, the reference's),
-      `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`.
+      `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`. The projected step
+      restarts from it where its start from the previous curve does not converge.
     - `initial_guess`: how the seed parameters are fitted to the trajectory: an OGA
       configuration (default `OGA1d()`; shallow networks), `LSGD()`, `TrainingMethod()`,
       `LeastSquaresFit()` (linear ansätze), `InitialWeights(...)`.
@@ -174,11 +192,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       With those root finders the fresh fit is their fallback point, in the compiled step
       once: they start there where the carried seed is unusable, and restart there when
       allowed, so the switch costs no compile time.
-    - `root_finder`: the per-step root finder. Default `None`: `LevenbergMarquardt()` (whose
-      tolerances scale with the working precision), or `RoundoffNewton()` with
-      `VariableProjection()`, which needs it. Other `optimistix` root finders are accepted by
-      the all-parameter formulations but get none of the solver's options (residual scale,
-      closed-form Jacobian, fallback seed) and stop on absolute tolerances; a plain
+    - `root_finder`: the per-step root finder. Default `None`: `RoundoffNewton()` for
+      `VariableProjection()`, which needs it, and `LevenbergMarquardt()` (whose tolerances
+      scale with the working precision) for the all-parameter formulations. Other
+      `optimistix` root finders are accepted by the all-parameter formulations but get none
+      of the solver's options (residual scale, closed-form Jacobian, fallback seed) and stop
+      on absolute tolerances; a plain
       `optx.Newton` meets a singular Jacobian there and fails the step.
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
     - `adjoint`: how `optimistix.root_find` differentiates a converged step. The default solves
@@ -214,13 +233,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     adjoint: optx.AbstractAdjoint = optx.ImplicitAdjoint(
         linear_solver=lx.AutoLinearSolver(well_posed=False)
     )
-    formulation: AbstractFormulation = FreeEndpoints()
+    formulation: AbstractFormulation | None = None
     error_estimate: int | None = eqx.field(static=True, default=None)
     iteration_log: int = eqx.field(static=True, default=0)
 
     term_structure: ClassVar = AbstractMechanicalTerm
 
     def __post_init__(self):
+        if self.formulation is None:
+            self.formulation = self._default_formulation()
         if self.root_finder is None:  # the formulation's own default
             if isinstance(self.formulation, VariableProjection):
                 self.root_finder = RoundoffNewton()
@@ -299,6 +320,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                     "`hidden` rule; reuse_neurons and PreviousStep() belong to the "
                     "all-parameter formulations"
                 )
+            changed = self._seed_options_set()
+            if isinstance(self.formulation.hidden, UniformLayer) and changed:
+                raise ValueError(
+                    "VariableProjection() with its fixed UniformLayer() fits no seed, so "
+                    f"{', '.join(changed)} would have no effect; use hidden=SeedLayer() or "
+                    "FirstSeedLayer() to seed the hidden layer by a fit, or "
+                    "formulation=FreeEndpoints() for the all-parameter step"
+                )
             if not isinstance(self.root_finder, RoundoffNewton):
                 raise ValueError(
                     "VariableProjection() solves a square system with an isolated root: use "
@@ -319,7 +348,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             raise TypeError(f"restart_failed must be True or False, got {self.restart_failed!r}")
         if not isinstance(self.reuse_neurons, bool):
             raise TypeError(f"reuse_neurons must be True or False, got {self.reuse_neurons!r}")
-        if self.reuse_neurons and not self._refits():
+        if self.reuse_neurons and not self._seeding.refits:
             raise ValueError(
                 "reuse_neurons refits the output weights of a ShallowNetBasis seeded by an OGA "
                 f"configuration; got {self.basis!r} with {self.initial_guess!r}"
@@ -345,6 +374,33 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             raise ValueError(
                 f"root_find_max_steps must be a positive integer, got {self.root_find_max_steps!r}"
             )
+
+    def _default_formulation(self) -> AbstractFormulation:
+        """`VariableProjection()` where the ansatz and the other options allow it, else
+        `FreeEndpoints()`: the projection's fixed layer needs a shallow network of an
+        activation it suits; a damped root finder, `reuse_neurons`, `PreviousStep()` and the
+        seed-fit options (`initial_guess`, `bias_interval`, `dict_amount`) belong to the
+        all-parameter step."""
+        projectable = (
+            isinstance(self.basis, ShallowNetBasis)
+            and not self.basis.mirrored
+            and UniformLayer.suits(self.basis.activation)
+        )
+        all_parameter_options = (
+            self.reuse_neurons
+            or isinstance(self.initial_trajectory, PreviousStep)
+            or bool(self._seed_options_set())
+            or not (self.root_finder is None or isinstance(self.root_finder, RoundoffNewton))
+        )
+        if projectable and not all_parameter_options:
+            return VariableProjection()
+        return FreeEndpoints()
+
+    def _seed_options_set(self) -> list[str]:
+        """The options of the seed fit given other values than their defaults
+        (`initial_trajectory` is not one: the projected step restarts from it)."""
+        defaults = dict(initial_guess=OGA1d(), bias_interval=(-math.pi, math.pi), dict_amount=4000)
+        return [name for name, value in defaults.items() if getattr(self, name) != value]
 
     @property
     def _companion_root_finder(self) -> optx.AbstractRootFinder:
@@ -376,112 +432,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         basis = self.basis.at_step(t, h)
         return StepContext(term, basis, t, h, q0, p0, args, nodes, weights)
 
-    def _uses_history(self) -> bool:
-        trajectory = self.initial_trajectory
-        if isinstance(trajectory, PreviousStep):
-            trajectory = trajectory.first
-        return isinstance(trajectory, HermiteExtrapolation)
-
-    def _refits(self) -> bool:
-        return (
-            self.reuse_neurons
-            and isinstance(self.initial_guess, OGA | OGAReference)
-            and isinstance(self.basis, ShallowNetBasis)
+    @property
+    def _seeding(self) -> SeedPolicy:
+        """The seed policy of this solver's options."""
+        return SeedPolicy.build(
+            self.basis, self.formulation, self.root_finder,
+            initial_trajectory=self.initial_trajectory, initial_guess=self.initial_guess,
+            bias_interval=self.bias_interval, dict_amount=self.dict_amount,
+            reuse_neurons=self.reuse_neurons, refit_tolerance=self.refit_tolerance,
+            refit_residual=self.refit_residual, refit_iterations=self.refit_iterations,
+            restart_failed=self.restart_failed,
         )
-
-    def _lazy_fresh_fit(self) -> bool:
-        """Whether the fresh seed fit is left to the root finder: where the seed may be carried
-        over from the previous step, the fit is the root finder's fallback, evaluated (once in
-        the compiled step) where the carried seed is unusable or its solve fails."""
-        return isinstance(self.root_finder, AbstractDampedNewton) and (
-            isinstance(self.initial_trajectory, PreviousStep) or self._refits()
-        )
-
-    def _fit_inputs(self, ctx: StepContext, previous, fresh, history):
-        """What a seed fit needs: the fit problem for the trajectory seed's labels (with the
-        previous step's parameters `previous`, unused on a `fresh` start), and the labels'
-        end position and momentum."""
-        labels, p_end = self.initial_trajectory.labels(
-            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
-        )
-        targets, modulated = self.formulation.fit_targets(labels, ctx.q0)
-        # The seed is a starting point, not part of the solution: no derivative flows through
-        # it (and none may, through the while loop of `diffrax_vi.lazy.unless_all_skip`).
-        targets, previous, q_end, p_end = jax.lax.stop_gradient(
-            (targets, previous, labels[-1], p_end)
-        )
-        return fit_problem(targets, modulated, previous, fresh), q_end, p_end
-
-    def _fresh_seed(self, ctx: StepContext, inputs):
-        """The seed from a fresh fit (`initial_guess`) of the trajectory seed."""
-        problem, q_end, p_end = inputs
-        theta = seed_parameters(
-            self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
-        )
-        return jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
-
-    def _cold_seed(
-        self, ctx: StepContext, previous, fresh, history, lazy: bool = False, refit_ok=True
-    ):
-        """The seed from a trajectory fit, whether it reused the previous step's neurons
-        `previous` (`reuse_neurons`; never on a `fresh` start, nor where `refit_ok` is false),
-        and the fit's inputs. With `lazy`, a refit that is not reused is returned as it is:
-        the caller starts from the fresh fit instead."""
-        inputs = self._fit_inputs(ctx, previous, fresh, history)
-        if not self._refits():
-            return self._fresh_seed(ctx, inputs), jnp.array(False), inputs
-        problem, q_end, p_end = inputs
-        theta, misfit = refit_output_weights(ctx.basis, problem)
-        tolerance = self.refit_tolerance
-        if tolerance is None:
-            tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
-        reused = ~fresh & (misfit <= tolerance) & refit_ok
-        x = jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
-        if not lazy:
-            x = unless_all_skip(~reused, lambda: self._fresh_seed(ctx, inputs), x)
-        return x, reused, inputs
-
-    def _refit_allowed(self, ctx: StepContext, state: NetworkVIState):
-        """Whether the previous step's root is fit to refit from: its solve ended at a
-        residual of at most `refit_residual` (relative to the residual scale) and took at most
-        `refit_iterations` iterations. Roots left at a higher residual, or reached only
-        slowly, are ill-conditioned, and refits carried on from them drift into worse ones,
-        step after step."""
-        allowed = jnp.array(True)
-        if self.refit_residual is not None:
-            allowed = state.report.residual <= self.refit_residual * _residual_scale(ctx)
-        if self.refit_iterations is not None:
-            allowed = allowed & (state.last_iterations <= self.refit_iterations)
-        return allowed
-
-    def _fallback_seed(self, args):
-        """The fresh seed the root finder starts or restarts from. Its `args` carry the step
-        context, the previous step's parameters, `fresh` flag and history, and the fit's
-        inputs where the step computed them already (else `None`)."""
-        ctx, cold_inputs, _, inputs = args
-        if inputs is None:
-            inputs = self._fit_inputs(ctx, *cold_inputs)
-        else:  # the grid came through `args` traced; the OGA wants it constant
-            problem, q_end, p_end = inputs
-            inputs = (with_constant_grid(problem), q_end, p_end)
-        return self._fresh_seed(ctx, inputs)
-
-    def _warm_acceptable(self, warm, ctx: StepContext, state: NetworkVIState, made_jump):
-        """Whether the warm start's residual passes `PreviousStep`'s acceptance test."""
-        residual = jax.tree_util.tree_leaves(self.formulation.residual(warm, ctx))
-        fmax = jnp.max(jnp.stack([jnp.max(jnp.abs(r)) for r in residual]))
-        tolerance = self.initial_trajectory.accept_tolerance(ctx.q0.dtype)
-        used = ~state.fresh & (fmax <= tolerance * _residual_scale(ctx))
-        if made_jump is not False:
-            used = used & ~made_jump
-        return used
-
-    def _warm_seed(self, ctx: StepContext, state: NetworkVIState):
-        ratio = ctx.h / state.h_prev
-        theta = ctx.basis.advance(state.theta, ratio)  # unused on a `fresh` state
-        q1, dq1 = ctx.basis.value_and_derivative(theta, jnp.ones((), ctx.q0.dtype))
-        p1 = ctx.term.momentum(ctx.t + ctx.h, q1, dq1 / ctx.h, ctx.args)
-        return jax.lax.stop_gradient((theta, p1))
 
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
@@ -494,15 +455,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # `t0` or `t1` makes diffrax take no step at all (see the failures page).
         check_times(t0=t0, t1=t1)
         ctx = self._context(terms, t0, t1, y0, args)
-        # The first step seeds itself (`fresh`): computing its seed here would put a second
-        # copy of the seed fit into the compiled program.
-        theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
+        seed = self._seeding.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
         return NetworkVIState(
-            theta=theta,
-            fresh=jnp.array(True),
-            h_prev=ctx.h,
-            history=StepHistory.empty(ctx.q0, ctx.t),
+            seed=seed,
             iterations=zero,
             last_iterations=zero,
             max_iterations=zero,
@@ -535,137 +491,102 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
 
     def _step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
+        """Seed -> solve -> accept."""
         ctx = self._context(terms, t0, t1, y0, args)
         state = solver_state
-        if made_jump is not False:
-            state = eqx.tree_at(lambda s: s.history.valid, state, state.history.valid & ~made_jump)
-        warm_used = jnp.array(False)
-        cold_inputs = (state.theta, state.fresh, state.history)
-        fit_inputs = None  # the seed fit's inputs, where computed outside a `cond`
-        lazy = self._lazy_fresh_fit()
-        refit_ok = self._refit_allowed(ctx, state) if self._refits() else jnp.array(False)
-        projected = isinstance(self.formulation, VariableProjection)
-        rule = self.formulation.hidden if projected else None
-        if isinstance(rule, UniformLayer | FirstSeedLayer):
-            # After the first step, every step starts from the previous curve continued; the
-            # first starts from a seed fit (`FirstSeedLayer`) or from the constant curve q_n.
-            warm = self._warm_seed(ctx, state)
-            if isinstance(rule, UniformLayer):
-                dim = ctx.q0.shape[0]
-                hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
-                start = self._continued_or_constant(ctx, state, warm)
-            else:
-                seed = jax.lax.cond(
-                    state.fresh, lambda: self._cold_seed(ctx, *cold_inputs)[0], lambda: warm
-                )
-                hidden = jnp.where(state.fresh, seed[0], state.theta)
-                start = (functools.partial(ctx.basis.evaluate, seed[0]), seed[1])
-            warm_used = ~state.fresh
+        seeding = self._seeding
+        record = seeding.after_jump(state.seed, made_jump)
+        seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
+        if isinstance(self.formulation, VariableProjection):
             theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(
-                ctx, hidden, *start
-            )
-            return self._finish_step(
-                ctx, state, theta, q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype), n, result,
-                residual, tolerance, jnp.array(False), warm_used, jnp.array(False),
-            )
-        if lazy and not self._refits():
-            # Only a warm start can be carried over; the fresh fit is the root finder's.
-            warm = self._warm_seed(ctx, state)
-            warm_used = self._warm_acceptable(warm, ctx, state, made_jump)
-            seed, refitted = warm, jnp.array(False)
-        elif isinstance(self.initial_trajectory, PreviousStep):
-            warm = self._warm_seed(ctx, state)
-            warm_used = self._warm_acceptable(warm, ctx, state, made_jump)
-            seed, refitted = jax.lax.cond(
-                warm_used,
-                lambda: (warm, jnp.array(False)),
-                lambda: self._cold_seed(ctx, *cold_inputs, lazy=lazy, refit_ok=refit_ok)[:2],
-            )
-        else:
-            seed, refitted, fit_inputs = self._cold_seed(
-                ctx, *cold_inputs, lazy=lazy, refit_ok=refit_ok
-            )
-        carried = warm_used | refitted
-
-        if projected:  # `SeedLayer`: the span of this step's own seed
-            curve = functools.partial(ctx.basis.evaluate, seed[0])
-            theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(
-                ctx, seed[0], curve, seed[1]
+                ctx, *seed.start, restart_history=seed.restart_history
             )
             restarted = jnp.array(False)
         else:
             theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_all(
-                seed, ctx, cold_inputs, carried, fit_inputs, lazy
+                ctx, seed
             )
         q1 = q1.astype(ctx.q0.dtype)
         p1 = p1.astype(ctx.p0.dtype)
         return self._finish_step(
-            ctx, state, theta, q1, p1, n, result, residual, tolerance, restarted,
-            warm_used, refitted,
+            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted
         )
 
-    def _continued_or_constant(self, ctx: StepContext, state: NetworkVIState, warm):
-        """The start of a projected step: the previous step's curve continued, or on the
-        first step the constant curve `q_n` with `p_{n+1} = p_n`."""
-        theta, p1 = warm
-
-        def curve(tau):
-            return jnp.where(state.fresh, ctx.q0, ctx.basis.evaluate(theta, tau))
-
-        return curve, jnp.where(state.fresh, ctx.p0, p1)
-
-    def _solve_projected(self, ctx: StepContext, hidden, curve, p1_start):
+    def _solve_projected(self, ctx: StepContext, hidden, curve, p1_start, restart_history=None):
         """The step's equations on the feature span of the hidden layer of the parameters
         `hidden`, from the curve `τ ↦ curve(τ)` projected on it and `p1_start`
-        (`VariableProjection`)."""
+        (`VariableProjection`).
+
+        Given `restart_history` (the steps that start from the previous curve continued), a
+        start that has not converged within `_FIRST_TRY` iterations is given up for the
+        trajectory seed of `initial_trajectory` (its labels, piecewise linear in `τ`)
+        projected on the span; the iteration cap covers both tries."""
         form = self.formulation
         span = form.span(hidden, ctx)
         z0 = jax.lax.stop_gradient((form.reduce(curve, span, ctx), p1_start))
+        cap = self.root_find_max_steps
+        if restart_history is None or cap <= _FIRST_TRY:
+            sol = self._projected_root(ctx, span, z0, cap)
+            z, f, n, result = sol.value, sol.state.f, sol.stats["num_steps"], sol.result
+        else:
+            first = self._projected_root(ctx, span, z0, _FIRST_TRY)
+            failed = first.result != optx.RESULTS.successful
+            # The seed is computed only where some solve needs it (lazily under vmap); the
+            # others restart from their root, which the second solve confirms.
+            z_seed = unless_all_skip(
+                failed,
+                lambda: self._seeding.restart_point(ctx, span, restart_history),
+                jax.lax.stop_gradient(first.value),
+            )
+
+            def restart():
+                sol = self._projected_root(ctx, span, z_seed, cap - _FIRST_TRY)
+                n = _FIRST_TRY + jnp.asarray(sol.stats["num_steps"], jnp.int32)
+                return sol.value, sol.state.f, n, sol.result
+
+            def keep():
+                n = jnp.asarray(first.stats["num_steps"], jnp.int32)
+                return first.value, first.state.f, n, first.result
+
+            z, f, n, result = jax.lax.cond(failed, restart, keep)
+        theta = form.expand(z[0], span)
+        q1, p1 = form.projected_end_state(z, span, ctx)
         scale = _residual_scale(ctx)
-        sol = optx.root_find(
+        residual = jax.lax.stop_gradient(jnp.max(jnp.abs(f)).astype(ctx.q0.dtype))
+        eps = float(jnp.finfo(ctx.q0.dtype).eps)
+        tolerance = (self.root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
+        n = jnp.asarray(n, jnp.int32)
+        return theta, (q1, p1), n, from_root_find(result), residual, tolerance
+
+    def _projected_root(self, ctx: StepContext, span, z0, max_steps: int):
+        form = self.formulation
+        return optx.root_find(
             form.reduced_residual,
             self.root_finder,
             z0,
             (ctx, span),
-            options=dict(scale=scale, jacobian=form.reduced_jacobian),
-            max_steps=self.root_find_max_steps,
+            options=dict(scale=_residual_scale(ctx), jacobian=form.reduced_jacobian),
+            max_steps=max_steps,
             adjoint=self.adjoint,
             throw=False,
         )
-        z = sol.value
-        theta = form.expand(z[0], span)
-        q1, p1 = form.projected_end_state(z, span)
-        residual = jax.lax.stop_gradient(jnp.max(jnp.abs(sol.state.f)).astype(ctx.q0.dtype))
-        eps = float(jnp.finfo(ctx.q0.dtype).eps)
-        tolerance = (self.root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
-        n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
-        return theta, (q1, p1), n, from_root_find(sol.result), residual, tolerance
 
-    def _solve_all(self, seed, ctx: StepContext, cold_inputs, carried, fit_inputs, lazy):
-        """The step's equations in all the ansatz parameters (the reference's solve)."""
-        # The fresh trajectory fit, whose inputs travel in the root find's `args`, is the
-        # root finder's fallback: it starts there where the carried seed (warm start or
-        # refitted neurons) is unusable, and restarts there once where the solve from the
-        # carried seed fails (`restart_failed`).
-        restart_inputs = jax.lax.stop_gradient(cold_inputs)
+    def _solve_all(self, ctx: StepContext, seed: Seed):
+        """The step's equations in all the ansatz parameters (the reference's solve), from
+        `seed` with the seed policy's fallback."""
+        x0, seed_args, seed_options = self._seeding.root_find_start(seed)
         jacobian = _jacobian_option(self.root_finder, self.formulation, ctx)
         options = dict(
             scale=_residual_scale(ctx),
             outputs=lambda x: self.formulation.end_state(x, ctx),
             jacobian=None if jacobian is None else lambda x, a: jacobian(x, a[0]),
+            **seed_options,
         )
-        if lazy:
-            options["fallback"] = self._fallback_seed
-            options["start_at_fallback"] = lambda a: ~a[2]
-            restart = self.restart_failed
-            options["fallback_usable"] = lambda a: a[2] & restart
-            # The unused seed only gives the shape: keep it finite.
-            seed = jax.tree_util.tree_map(lambda v: jnp.where(carried, v, 0), seed)
         sol = optx.root_find(
             lambda x, a: self.formulation.residual(x, a[0]),
             self.root_finder,
-            seed,
-            (ctx, restart_inputs, carried, fit_inputs if lazy else None),
+            x0,
+            (ctx, *seed_args),
             options=options,
             max_steps=self.root_find_max_steps,
             adjoint=self.adjoint,
@@ -681,10 +602,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
 
     def _finish_step(
-        self, ctx, state, theta, q1, p1, n, result, residual, tolerance, restarted,
-        warm_used, refitted,
+        self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted
     ):
-        """Failure results, dense output, the new solver state."""
+        """Failure results, dense output, the new solver state (the seed policy's record
+        accepts the step)."""
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         result = diffrax.RESULTS.where(
             finite | (result != diffrax.RESULTS.successful),
@@ -724,21 +645,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             dense_info[key] = jax.tree_util.tree_map(
                 lambda a: jnp.where(failed, jnp.asarray(jnp.nan, a.dtype), a), dense_info[key]
             )
-        # Only Hermite extrapolation reads the previous step's ends; skip the work otherwise.
-        history = _history(ctx, curve, q1) if self._uses_history() else state.history
-
         new_state = NetworkVIState(
-            theta=theta,
-            fresh=jnp.array(False),
-            h_prev=ctx.h,
-            history=history,
+            seed=self._seeding.accept(ctx, record, theta, curve, q1),
             iterations=state.iterations + n,
             last_iterations=n,
             max_iterations=jnp.maximum(state.max_iterations, n),
             steps=state.steps + 1,
             histogram=state.histogram.at[jnp.minimum(n, self.root_find_max_steps)].add(1),
-            warm_starts=state.warm_starts + warm_used.astype(jnp.int32),
-            refits=state.refits + refitted.astype(jnp.int32),
+            warm_starts=state.warm_starts + seed.warm.astype(jnp.int32),
+            refits=state.refits + seed.refitted.astype(jnp.int32),
             restarts=state.restarts + restarted.astype(jnp.int32),
             iteration_log=(
                 state.iteration_log.at[state.steps].set(n, mode="drop")
@@ -808,27 +723,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return terms.vf(t0, y0, args)
 
 
+# Iterations the projected step allows its start from the previous curve continued before it
+# restarts from the trajectory seed (`NetworkVI._solve_projected`).
+_FIRST_TRY = 16
+
+
 @functools.cache
 def _traced_once(step):
     """`step` jitted: diffrax traces a solver's step up to three times while building its
     loop (twice to find the loop's types); a jitted step is traced once per signature and
     the other traces reuse it."""
     return eqx.filter_jit(step)
-
-
-def _history(ctx: StepContext, curve, q1: Array) -> StepHistory:
-    """The ends of the converged step, for the next step's Hermite extrapolation."""
-    dtype = ctx.q0.dtype
-    ends = jnp.array([0.0, 1.0], dtype)
-    _, dq = stage_values(curve, ends)
-    v = dq / ctx.h
-    ts = ctx.t + ends * ctx.h
-    qs = jnp.stack([ctx.q0, q1])
-    _, f = jax.vmap(ctx.term.momentum_and_force, in_axes=(0, 0, 0, None))(ts, qs, v, ctx.args)
-    v, f = v.astype(dtype), f.astype(dtype)
-    return jax.lax.stop_gradient(
-        StepHistory(jnp.array(True), ctx.t, ctx.h, ctx.q0, v[0], ctx.p0, f[0], v[1], f[1])
-    )
 
 
 @functools.lru_cache(maxsize=64)
@@ -852,11 +757,6 @@ def _jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepCon
     ):
         return formulation.jacobian
     return None
-
-
-def _residual_scale(ctx: StepContext) -> Array:
-    """Size of the step's residual terms: `1 + max(|q_n|, |p_n|)`."""
-    return 1 + jnp.maximum(jnp.max(jnp.abs(ctx.q0)), jnp.max(jnp.abs(ctx.p0)))
 
 
 def _check_state(y0: Any) -> tuple[Array, Array]:

@@ -188,7 +188,10 @@ def test_fixed_entries_may_retry_failed_steps():
     """`Fixed(..., retry=True)` steps with RetryFailedSteps: the run that fails at h = 3 with
     constant steps goes to the end, and the row counts the failed trials."""
     ho = problems.harmonic_oscillator(dtype=jnp.float64, t1=24.0)
-    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8))
+    # the all-parameter step, which fails at h = 3 (the projected one solves any oscillator step)
+    solver = dvi.NetworkVI(
+        dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8), formulation=dvi.FreeEndpoints()
+    )
     plain = Fixed("NetworkVI", solver, family="ours")
     retry = Fixed("NetworkVI retry", solver, family="ours", retry=True)
     assert retry.step_budget(8) > plain.step_budget(8) == 8
@@ -422,12 +425,12 @@ def test_full_grid_sample_draws_whole_compilation_groups():
 
 
 def test_speed_script_measures_the_ensemble_floor():
-    """benchmarks/speed.py's floor of an ensemble member: the vmapped linear solve of one
-    LM iteration at the fixture's size (31 unknowns: the 30 parameters of 10 neurons and
-    p_{n+1}), and the iterations of one member's solve."""
+    """benchmarks/speed.py's floor of an ensemble member: the vmapped LU solve of one Newton
+    iteration of the projected step at the fixture's size (10 unknowns: 9 span coefficients
+    and p_{n+1}), and the iterations of one member's solve."""
     module = benchmark_script("speed")
-    per_member, iterations, n = module.least_squares_floor(4, 1)
-    assert n == 31
+    per_member, iterations, n = module.linear_solve_floor(4, 1)
+    assert n == 10
     assert 0 < per_member < 0.1
     assert 10 <= iterations <= 10 * 100  # 10 steps, each 1 to root_find_max_steps
 
@@ -607,7 +610,8 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals(capsys):
     q, p, ok, residual, refits, steady, iterations = module.run_steps(
         module.solver_for("default"), problem, 0.25, 5, repeats=1)
     assert ok.all() and q.shape == (5, 1) and np.all((residual > 0) & (residual < 1e-8))
-    assert refits == 0 and steady > 0 and 2 <= iterations <= 20
+    # the projected default solves the oscillator's linear step equations in one iteration
+    assert refits == 0 and steady > 0 and iterations == 1
     summary = module.drift_summary(problem, q, p, residual)
     assert summary["residual"][2] == residual.max() and len(summary["windows"]) == 5
     assert summary["windows"][-1] < 1e-8

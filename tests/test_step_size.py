@@ -10,7 +10,11 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 
-NETWORK = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8))
+# The all-parameter step: it fails now and then at h = 3 on the oscillator, whose linear
+# equations the default (projected) step solves at any step length.
+NETWORK = dvi.NetworkVI(
+    dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8), formulation=dvi.FreeEndpoints()
+)
 
 
 @eqx.filter_jit

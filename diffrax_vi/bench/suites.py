@@ -13,6 +13,7 @@ import jax.numpy as jnp
 from .. import problems as _problems
 from ..activations import gelu, tanh
 from ..ansatz.shallow import ShallowNetBasis
+from ..formulation import FreeEndpoints
 from ..methods import CGVI
 from ..nonlinear import LevenbergMarquardt
 from ..projection import VariableProjection
@@ -79,13 +80,13 @@ PEERS_ADAPTIVE = ("Tsit5", "Dopri8")
 
 
 def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
-    """NetworkVI variants. Quick has three tanh networks: `warm` (the defaults with a warm start
-    from the previous step's curve), `fast` (the opt-in settings of the how-to "A faster
+    """NetworkVI variants. Quick has three tanh networks: `warm` (the all-parameter step with a
+    warm start from the previous step's curve), `fast` (the opt-in settings of the how-to "A faster
     step": the previous step's neurons refitted as seed, the closed-form Jacobian, a solve
     ended by the first exact iteration whose outputs settled) and `projection` (the projected
-    step, `formulation=VariableProjection()` with its defaults: the fixed `UniformLayer()`
-    hidden layer and `RoundoffNewton()`). Full adds the reference's per-step seed
-    (extrapolated trajectory + OGA) and a GELU network."""
+    step, `NetworkVI`'s default: `VariableProjection()` with the fixed `UniformLayer()`
+    hidden layer and `RoundoffNewton()`). Full adds the all-parameter step with the
+    reference's per-step seed (extrapolated trajectory + OGA) and a GELU network (warm)."""
     basis = ShallowNetBasis(tanh, setting.width)
     quad = GaussLegendre(setting.nodes)
     label = f"tanh{setting.width} R{setting.nodes}"
@@ -103,7 +104,8 @@ def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
     if full:
         out += [
             Fixed(f"NetworkVI {label} OGA",
-                  NetworkVI(basis, quad, initial_trajectory=IntegratorExtrapolation()),
+                  NetworkVI(basis, quad, initial_trajectory=IntegratorExtrapolation(),
+                            formulation=FreeEndpoints()),
                   family="ours"),
             Fixed(f"NetworkVI gelu{setting.width} R{setting.nodes} warm",
                   NetworkVI(ShallowNetBasis(gelu, setting.width), quad,

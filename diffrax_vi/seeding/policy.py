@@ -1,0 +1,360 @@
+"""`NetworkVI`'s seed policy: where each step's nonlinear solve starts, and what it carries
+from one step to the next to choose that start.
+
+A step reads: `SeedPolicy.seed` (the start, from the policy's `SeedRecord`) -> the solve ->
+`SeedPolicy.accept` (the record after the converged step). The policy is built by `NetworkVI`
+from its options; it holds no state of its own.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, PyTree
+
+from ..ansatz.base import AbstractBasis
+from ..ansatz.shallow import ShallowNetBasis
+from ..formulation import AbstractFormulation, StepContext, stage_values
+from ..lazy import unless_all_skip
+from ..nonlinear import AbstractDampedNewton
+from ..oga import OGA, OGAReference
+from ..projection import FirstSeedLayer, UniformLayer, VariableProjection
+from .fit import (
+    AbstractParameterSeed,
+    fit_problem,
+    refit_output_weights,
+    seed_parameters,
+    with_constant_grid,
+)
+from .trajectories import AbstractInitialTrajectory, HermiteExtrapolation, PreviousStep, StepHistory
+
+__all__ = ["Seed", "SeedPolicy", "SeedRecord", "residual_scale"]
+
+
+class SeedRecord(eqx.Module):
+    """What the seed policy carries from step to step.
+
+    - `theta`: the last converged parameters; before the first step they are zeros and
+      `fresh` is true (the first step is always seeded by a trajectory fit).
+    - `h_prev`: the length of the step `theta` belongs to.
+    - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
+    """
+
+    theta: PyTree
+    fresh: Array
+    h_prev: Array
+    history: StepHistory
+
+
+class Seed(NamedTuple):
+    """A step's start, as the policy chose it.
+
+    - `start`: the all-parameter unknowns; for `VariableProjection`, `(hidden, curve, p1)`:
+      the parameters whose hidden layer spans the step, the curve projected on that span as
+      the start, and the start of `p_{n+1}`.
+    - `warm`, `refitted`: whether the start carries the previous step's curve continued, or
+      its neurons with refitted output weights (the solver counts both).
+    - `cold_inputs`, `fit_inputs`: what the root finder's fallback (the fresh fit) is computed
+      from: the record's `(theta, fresh, history)`, and the fit's inputs where the step
+      computed them already (else `None`).
+    - `restart_history`: for the projected steps that start from the previous curve
+      continued, the history their restart from the trajectory seed reads (else `None`).
+    """
+
+    start: Any
+    warm: Array
+    refitted: Array
+    cold_inputs: tuple | None = None
+    fit_inputs: tuple | None = None
+    restart_history: StepHistory | None = None
+
+
+class SeedPolicy(eqx.Module):
+    """How `NetworkVI` seeds each step (`NetworkVI` builds it from its options by `build`).
+
+    The all-parameter step starts from a fit (`initial_guess`) of the trajectory seed
+    (`initial_trajectory`), from the previous step's neurons with refitted output weights
+    (`refits`), or from the previous curve continued (`PreviousStep`). With a damped root
+    finder and a seed that may be carried over (`lazy`), the fresh fit is the root finder's
+    fallback instead, computed only where the carried seed is unusable or its solve fails.
+    `VariableProjection` seeds its hidden layer by its `hidden` rule.
+    """
+
+    formulation: AbstractFormulation
+    initial_trajectory: AbstractInitialTrajectory
+    initial_guess: OGA | OGAReference | AbstractParameterSeed
+    bias_interval: tuple[float, float] = eqx.field(static=True)
+    dict_amount: int = eqx.field(static=True)
+    refits: bool = eqx.field(static=True)
+    refit_tolerance: float | None = eqx.field(static=True)
+    refit_residual: float | None = eqx.field(static=True)
+    refit_iterations: int | None = eqx.field(static=True)
+    restart_failed: bool = eqx.field(static=True)
+    lazy: bool = eqx.field(static=True)
+
+    @classmethod
+    def build(
+        cls, basis: AbstractBasis, formulation: AbstractFormulation, root_finder, *,
+        initial_trajectory, initial_guess, bias_interval, dict_amount, reuse_neurons,
+        refit_tolerance, refit_residual, refit_iterations, restart_failed,
+    ) -> SeedPolicy:
+        """The policy of a solver's options. Refits need an OGA-seeded `ShallowNetBasis`; the
+        fresh fit is left to the root finder where it is damped (it takes a fallback) and the
+        seed may be carried over from the previous step."""
+        refits = bool(
+            reuse_neurons
+            and isinstance(initial_guess, OGA | OGAReference)
+            and isinstance(basis, ShallowNetBasis)
+        )
+        lazy = isinstance(root_finder, AbstractDampedNewton) and (
+            isinstance(initial_trajectory, PreviousStep) or refits
+        )
+        return cls(
+            formulation, initial_trajectory, initial_guess, bias_interval, dict_amount, refits,
+            refit_tolerance, refit_residual, refit_iterations, restart_failed, lazy,
+        )
+
+    # -- the record --------------------------------------------------------------------------
+    def first_record(self, ctx: StepContext) -> SeedRecord:
+        """The record before the first step, which seeds itself (`fresh`): computing its seed
+        here would put a second copy of the seed fit into the compiled program."""
+        theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
+        return SeedRecord(theta, jnp.array(True), ctx.h, StepHistory.empty(ctx.q0, ctx.t))
+
+    @staticmethod
+    def after_jump(record: SeedRecord, made_jump) -> SeedRecord:
+        """The record across a jump of the state: the previous step's ends no longer apply."""
+        if made_jump is False:
+            return record
+        return eqx.tree_at(lambda r: r.history.valid, record, record.history.valid & ~made_jump)
+
+    def accept(self, ctx: StepContext, record: SeedRecord, theta, curve, q1) -> SeedRecord:
+        """The record after the step to `q1` along `curve` with parameters `theta`."""
+        # Only Hermite extrapolation reads the previous step's ends; skip the work otherwise.
+        history = _history(ctx, curve, q1) if self.uses_history else record.history
+        return SeedRecord(theta, jnp.array(False), ctx.h, history)
+
+    @property
+    def uses_history(self) -> bool:
+        trajectory = self.initial_trajectory
+        if isinstance(trajectory, PreviousStep):
+            trajectory = trajectory.first
+        return isinstance(trajectory, HermiteExtrapolation)
+
+    # -- the start of a step -----------------------------------------------------------------
+    def seed(
+        self, ctx: StepContext, record: SeedRecord, made_jump, last_residual, last_iterations
+    ) -> Seed:
+        """The start of the step from `record`; `last_residual` and `last_iterations` are how
+        the previous step's solve ended (for the refit guards)."""
+        cold_inputs = (record.theta, record.fresh, record.history)
+        refit_ok = (
+            self._refit_allowed(ctx, last_residual, last_iterations)
+            if self.refits
+            else jnp.array(False)
+        )
+        projected = isinstance(self.formulation, VariableProjection)
+        rule = self.formulation.hidden if projected else None
+        if isinstance(rule, UniformLayer | FirstSeedLayer):
+            return self._carried_layer_seed(ctx, record, rule, cold_inputs)
+        warm_used = jnp.array(False)
+        fit_inputs = None  # the seed fit's inputs, where computed outside a `cond`
+        if self.lazy and not self.refits:
+            # Only a warm start can be carried over; the fresh fit is the root finder's.
+            warm = self._warm_seed(ctx, record)
+            warm_used = self._warm_acceptable(warm, ctx, record, made_jump)
+            seed, refitted = warm, jnp.array(False)
+        elif isinstance(self.initial_trajectory, PreviousStep):
+            warm = self._warm_seed(ctx, record)
+            warm_used = self._warm_acceptable(warm, ctx, record, made_jump)
+            seed, refitted = jax.lax.cond(
+                warm_used,
+                lambda: (warm, jnp.array(False)),
+                lambda: self._cold_seed(
+                    ctx, *cold_inputs, lazy=self.lazy, refit_ok=refit_ok
+                )[:2],
+            )
+        else:
+            seed, refitted, fit_inputs = self._cold_seed(
+                ctx, *cold_inputs, lazy=self.lazy, refit_ok=refit_ok
+            )
+        if projected:  # `SeedLayer`: the span of this step's own seed
+            start = (seed[0], functools.partial(ctx.basis.evaluate, seed[0]), seed[1])
+            return Seed(start, warm_used, refitted)
+        return Seed(seed, warm_used, refitted, cold_inputs, fit_inputs)
+
+    def _carried_layer_seed(self, ctx: StepContext, record: SeedRecord, rule, cold_inputs):
+        """A projected step whose hidden layer is carried from step to step (`UniformLayer`,
+        `FirstSeedLayer`): after the first step, every step starts from the previous curve
+        continued; the first starts from a seed fit (`FirstSeedLayer`) or from the constant
+        curve q_n."""
+        warm = self._warm_seed(ctx, record)
+        if isinstance(rule, UniformLayer):
+            dim = ctx.q0.shape[0]
+            hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
+            start = self._continued_or_constant(ctx, record, warm)
+        else:
+            seed = jax.lax.cond(
+                record.fresh, lambda: self._cold_seed(ctx, *cold_inputs)[0], lambda: warm
+            )
+            hidden = jnp.where(record.fresh, seed[0], record.theta)
+            start = (functools.partial(ctx.basis.evaluate, seed[0]), seed[1])
+        warm_used = ~record.fresh
+        return Seed((hidden, *start), warm_used, jnp.array(False), restart_history=record.history)
+
+    def _continued_or_constant(self, ctx: StepContext, record: SeedRecord, warm):
+        """The start of a projected step: the previous step's curve continued, or on the
+        first step the constant curve `q_n` with `p_{n+1} = p_n`."""
+        theta, p1 = warm
+
+        def curve(tau):
+            return jnp.where(record.fresh, ctx.q0, ctx.basis.evaluate(theta, tau))
+
+        return curve, jnp.where(record.fresh, ctx.p0, p1)
+
+    def _warm_seed(self, ctx: StepContext, record: SeedRecord):
+        """The previous step's curve continued over this step, and its end momentum."""
+        ratio = ctx.h / record.h_prev
+        theta = ctx.basis.advance(record.theta, ratio)  # unused on a `fresh` record
+        q1, dq1 = ctx.basis.value_and_derivative(theta, jnp.ones((), ctx.q0.dtype))
+        p1 = ctx.term.momentum(ctx.t + ctx.h, q1, dq1 / ctx.h, ctx.args)
+        return jax.lax.stop_gradient((theta, p1))
+
+    def _warm_acceptable(self, warm, ctx: StepContext, record: SeedRecord, made_jump):
+        """Whether the warm start's residual passes `PreviousStep`'s acceptance test."""
+        residual = jax.tree_util.tree_leaves(self.formulation.residual(warm, ctx))
+        fmax = jnp.max(jnp.stack([jnp.max(jnp.abs(r)) for r in residual]))
+        tolerance = self.initial_trajectory.accept_tolerance(ctx.q0.dtype)
+        used = ~record.fresh & (fmax <= tolerance * residual_scale(ctx))
+        if made_jump is not False:
+            used = used & ~made_jump
+        return used
+
+    def _refit_allowed(self, ctx: StepContext, last_residual, last_iterations):
+        """Whether the previous step's root is fit to refit from: its solve ended at a
+        residual of at most `refit_residual` (relative to the residual scale) and took at most
+        `refit_iterations` iterations. Roots left at a higher residual, or reached only
+        slowly, are ill-conditioned, and refits carried on from them drift into worse ones,
+        step after step."""
+        allowed = jnp.array(True)
+        if self.refit_residual is not None:
+            allowed = last_residual <= self.refit_residual * residual_scale(ctx)
+        if self.refit_iterations is not None:
+            allowed = allowed & (last_iterations <= self.refit_iterations)
+        return allowed
+
+    # -- fits of the trajectory seed ---------------------------------------------------------
+    def _fit_inputs(self, ctx: StepContext, previous, fresh, history):
+        """What a seed fit needs: the fit problem for the trajectory seed's labels (with the
+        previous step's parameters `previous`, unused on a `fresh` start), and the labels'
+        end position and momentum."""
+        labels, p_end = self.initial_trajectory.labels(
+            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
+        )
+        targets, modulated = self.formulation.fit_targets(labels, ctx.q0)
+        # The seed is a starting point, not part of the solution: no derivative flows through
+        # it (and none may, through the while loop of `diffrax_vi.lazy.unless_all_skip`).
+        targets, previous, q_end, p_end = jax.lax.stop_gradient(
+            (targets, previous, labels[-1], p_end)
+        )
+        return fit_problem(targets, modulated, previous, fresh), q_end, p_end
+
+    def _fresh_seed(self, ctx: StepContext, inputs):
+        """The seed from a fresh fit (`initial_guess`) of the trajectory seed."""
+        problem, q_end, p_end = inputs
+        theta = seed_parameters(
+            self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
+        )
+        return jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
+
+    def _cold_seed(
+        self, ctx: StepContext, previous, fresh, history, lazy: bool = False, refit_ok=True
+    ):
+        """The seed from a trajectory fit, whether it reused the previous step's neurons
+        `previous` (`refits`; never on a `fresh` start, nor where `refit_ok` is false), and
+        the fit's inputs. With `lazy`, a refit that is not reused is returned as it is: the
+        caller starts from the fresh fit instead."""
+        inputs = self._fit_inputs(ctx, previous, fresh, history)
+        if not self.refits:
+            return self._fresh_seed(ctx, inputs), jnp.array(False), inputs
+        problem, q_end, p_end = inputs
+        theta, misfit = refit_output_weights(ctx.basis, problem)
+        tolerance = self.refit_tolerance
+        if tolerance is None:
+            tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
+        reused = ~fresh & (misfit <= tolerance) & refit_ok
+        x = jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
+        if not lazy:
+            x = unless_all_skip(~reused, lambda: self._fresh_seed(ctx, inputs), x)
+        return x, reused, inputs
+
+    # -- what the solve reads ----------------------------------------------------------------
+    def root_find_start(self, seed: Seed):
+        """The all-parameter root find's start, the seed part of its `args` (after the step
+        context) and its fallback options. The fresh trajectory fit, whose inputs travel in
+        the `args`, is the root finder's fallback (with `lazy`): it starts there where the
+        carried seed (warm start or refitted neurons) is unusable, and restarts there once
+        where the solve from the carried seed fails (`restart_failed`)."""
+        restart_inputs = jax.lax.stop_gradient(seed.cold_inputs)
+        carried = seed.warm | seed.refitted
+        x0 = seed.start
+        options = {}
+        if self.lazy:
+            options["fallback"] = self.fallback
+            options["start_at_fallback"] = lambda a: ~a[2]
+            restart = self.restart_failed
+            options["fallback_usable"] = lambda a: a[2] & restart
+            # The unused seed only gives the shape: keep it finite.
+            x0 = jax.tree_util.tree_map(lambda v: jnp.where(carried, v, 0), x0)
+        args = (restart_inputs, carried, seed.fit_inputs if self.lazy else None)
+        return x0, args, options
+
+    def fallback(self, args):
+        """The fresh seed the root finder starts or restarts from. Its `args` carry the step
+        context, the previous step's parameters, `fresh` flag and history, and the fit's
+        inputs where the step computed them already (else `None`)."""
+        ctx, cold_inputs, _, inputs = args
+        if inputs is None:
+            inputs = self._fit_inputs(ctx, *cold_inputs)
+        else:  # the grid came through `args` traced; the OGA wants it constant
+            problem, q_end, p_end = inputs
+            inputs = (with_constant_grid(problem), q_end, p_end)
+        return self._fresh_seed(ctx, inputs)
+
+    def restart_point(self, ctx: StepContext, span, history):
+        """The projected step's restart: the trajectory seed's labels (piecewise linear in
+        `τ`) and `p_{n+1}` estimate, as span coordinates."""
+        labels, p_end = self.initial_trajectory.labels(
+            ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
+        )
+        grid = jnp.arange(labels.shape[0], dtype=ctx.q0.dtype) / (labels.shape[0] - 1)
+
+        def seed_curve(tau):
+            return jax.vmap(lambda y: jnp.interp(tau, grid, y), in_axes=1)(labels)
+
+        z = (self.formulation.reduce(seed_curve, span, ctx), p_end.astype(ctx.p0.dtype))
+        return jax.lax.stop_gradient(z)
+
+
+def residual_scale(ctx: StepContext) -> Array:
+    """Size of the step's residual terms: `1 + max(|q_n|, |p_n|)`."""
+    return 1 + jnp.maximum(jnp.max(jnp.abs(ctx.q0)), jnp.max(jnp.abs(ctx.p0)))
+
+
+def _history(ctx: StepContext, curve, q1: Array) -> StepHistory:
+    """The ends of the converged step, for the next step's Hermite extrapolation."""
+    dtype = ctx.q0.dtype
+    ends = jnp.array([0.0, 1.0], dtype)
+    _, dq = stage_values(curve, ends)
+    v = dq / ctx.h
+    ts = ctx.t + ends * ctx.h
+    qs = jnp.stack([ctx.q0, q1])
+    _, f = jax.vmap(ctx.term.momentum_and_force, in_axes=(0, 0, 0, None))(ts, qs, v, ctx.args)
+    v, f = v.astype(dtype), f.astype(dtype)
+    return jax.lax.stop_gradient(
+        StepHistory(jnp.array(True), ctx.t, ctx.h, ctx.q0, v[0], ctx.p0, f[0], v[1], f[1])
+    )
