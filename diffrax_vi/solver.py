@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import Any, ClassVar
@@ -399,8 +400,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def _seed_options_set(self) -> list[str]:
         """The options of the seed fit given other values than their defaults
         (`initial_trajectory` is not one: the projected step restarts from it)."""
-        defaults = dict(initial_guess=OGA1d(), bias_interval=(-math.pi, math.pi), dict_amount=4000)
-        return [name for name, value in defaults.items() if getattr(self, name) != value]
+        defaults = {f.name: f.default for f in dataclasses.fields(type(self))}
+        names = ("initial_guess", "bias_interval", "dict_amount")
+        return [name for name in names if getattr(self, name) != defaults[name]]
 
     @property
     def _companion_root_finder(self) -> optx.AbstractRootFinder:
