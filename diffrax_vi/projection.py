@@ -41,6 +41,7 @@ from .activations import ReLUk, gelu, sigmoid, tanh
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
+from .lazy import unless_all_skip
 from .linalg import _work_dtype, solve
 
 __all__ = [
@@ -268,7 +269,7 @@ class VariableProjection(FreeEndpoints):
         """Free-endpoint equations in the span coordinates `z = (c, p_{n+1})`: the action's
         stationarity along each live direction (`(k, D)`; pinned directions: `c = 0`) and
         continuity `q_h(0) = q_n`."""
-        ctx, span = args
+        ctx, span = args[0], args[1]
         c, p1 = z
         q = jnp.einsum("djk,kd->jd", span.gq, c)
         dq = jnp.einsum("djk,kd->jd", span.gv, c)
@@ -287,7 +288,7 @@ class VariableProjection(FreeEndpoints):
         """The Jacobian of `reduced_residual`, dense, in the order of `ravel_pytree`: the
         curve is linear in `c`, so it needs only the Lagrangian's second derivatives at the
         nodes (one `jax.jacfwd` of `(ϑ, f)` per node)."""
-        ctx, span = args
+        ctx, span = args[0], args[1]
         c, _ = z
         dtype = c.dtype
         k, dim = c.shape
@@ -382,6 +383,8 @@ class _NewtonState(eqx.Module):
     converged: Array
     at_floor: Array
     stalls: Array
+    iterations: Array
+    restarted: Array
 
 
 class RoundoffNewton(optx.AbstractRootFinder):
@@ -397,6 +400,11 @@ class RoundoffNewton(optx.AbstractRootFinder):
     solve makes at least one update, whatever the start's residual. It fails
     (`nonlinear_divergence`) after `max_stalls` line searches in a row find no decrease, and
     at the iteration cap.
+
+    Given `options["restart"] = (first_try, start)`, a solve that has not converged after
+    `first_try` iterations (or has stalled or become non-finite before) starts once more
+    from `start(args)`, within the same iteration cap; `start` runs only where a solve needs
+    it (under `vmap`: only if some member does). `state.restarted` says whether it did.
 
     **Arguments:**
 
@@ -443,7 +451,8 @@ class RoundoffNewton(optx.AbstractRootFinder):
         # Never converged at the start: in low precision the tolerance can be as large as the
         # start's residual, and a step must make at least one Newton update.
         no = jnp.array(False)
-        return _NewtonState(flat, inf, no, no, jnp.array(0, jnp.int32))
+        return _NewtonState(flat, inf, no, no, jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
+                            no)
 
     def step(self, fn, y, args, options, state, tags):
         del tags
@@ -490,7 +499,31 @@ class RoundoffNewton(optx.AbstractRootFinder):
         )
         stalls = jnp.where(decreased, 0, state.stalls + 1)
         step_norm = jnp.where(decreased, norm, state.step_norm)
-        return unravel(new), _NewtonState(f_new, step_norm, converged, at_floor, stalls), aux
+        iterations = state.iterations + 1
+        restarted = state.restarted
+        restart = options.get("restart")
+        if restart is not None:
+            first_try, start = restart
+            give_up = ~restarted & ~(converged | at_floor) & (
+                (iterations >= first_try) | (stalls >= self.max_stalls)
+                | ~jnp.isfinite(fmax_new)
+            )
+
+            def fresh():
+                y_r = ravel_pytree(start(args))[0].astype(dtype)
+                return y_r, residual(y_r)[0]
+
+            y_r, f_r = unless_all_skip(give_up, fresh, (new, f_new))
+            new = jnp.where(give_up, y_r, new)
+            f_new = jnp.where(give_up, f_r, f_new)
+            inf = jnp.full((), jnp.inf, dtype)
+            step_norm = jnp.where(give_up, inf, step_norm)
+            stalls = jnp.where(give_up, 0, stalls)
+            converged = converged & ~give_up
+            at_floor = at_floor & ~give_up
+            restarted = restarted | give_up
+        state = _NewtonState(f_new, step_norm, converged, at_floor, stalls, iterations, restarted)
+        return unravel(new), state, aux
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, y, args, options, tags

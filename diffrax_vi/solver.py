@@ -27,7 +27,6 @@ from .formulation import (
     stage_values,
 )
 from .interpolation import NetworkInterpolation
-from .lazy import unless_all_skip
 from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
 from .oga import OGA, OGA1d, OGAReference
 from .projection import RoundoffNewton, UniformLayer, VariableProjection
@@ -500,10 +499,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
         if isinstance(self.formulation, VariableProjection):
-            theta, (q1, p1), n, result, residual, tolerance = self._solve_projected(
+            theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_projected(
                 ctx, *seed.start, restart_history=seed.restart_history
             )
-            restarted = jnp.array(False)
         else:
             theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_all(
                 ctx, seed
@@ -527,30 +525,20 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         span = form.span(hidden, ctx)
         z0 = jax.lax.stop_gradient((form.reduce(curve, span, ctx), p1_start))
         cap = self.root_find_max_steps
-        if restart_history is None or cap <= _FIRST_TRY:
-            sol = self._projected_root(ctx, span, z0, cap)
-            z, f, n, result = sol.value, sol.state.f, sol.stats["num_steps"], sol.result
-        else:
-            first = self._projected_root(ctx, span, z0, _FIRST_TRY)
-            failed = first.result != optx.RESULTS.successful
-            # The seed is computed only where some solve needs it (lazily under vmap); the
-            # others restart from their root, which the second solve confirms.
-            z_seed = unless_all_skip(
-                failed,
-                lambda: self._seeding.restart_point(ctx, span, restart_history),
-                jax.lax.stop_gradient(first.value),
-            )
+        restart = None
+        if restart_history is not None and cap > _FIRST_TRY:
+            # Inside the root finder, so that the trajectory seed is computed only where a
+            # solve needs it, and under vmap only if some member does.
+            seeding = self._seeding
 
-            def restart():
-                sol = self._projected_root(ctx, span, z_seed, cap - _FIRST_TRY)
-                n = _FIRST_TRY + jnp.asarray(sol.stats["num_steps"], jnp.int32)
-                return sol.value, sol.state.f, n, sol.result
+            def start(args):
+                ctx, span, history = args
+                return seeding.restart_point(ctx, span, history)
 
-            def keep():
-                n = jnp.asarray(first.stats["num_steps"], jnp.int32)
-                return first.value, first.state.f, n, first.result
-
-            z, f, n, result = jax.lax.cond(failed, restart, keep)
+            restart = (_FIRST_TRY, start)
+        sol = self._projected_root(ctx, span, z0, cap, restart, restart_history)
+        z, f, n, result = sol.value, sol.state.f, sol.stats["num_steps"], sol.result
+        restarted = jnp.asarray(getattr(sol.state, "restarted", False))
         theta = form.expand(z[0], span)
         q1, p1 = form.projected_end_state(z, span, ctx)
         scale = _residual_scale(ctx)
@@ -558,16 +546,20 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         eps = float(jnp.finfo(ctx.q0.dtype).eps)
         tolerance = (self.root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
         n = jnp.asarray(n, jnp.int32)
-        return theta, (q1, p1), n, from_root_find(result), residual, tolerance
+        return theta, (q1, p1), n, from_root_find(result), residual, tolerance, restarted
 
-    def _projected_root(self, ctx: StepContext, span, z0, max_steps: int):
+    def _projected_root(self, ctx: StepContext, span, z0, max_steps: int, restart=None,
+                        history=None):
         form = self.formulation
+        options = dict(scale=_residual_scale(ctx), jacobian=form.reduced_jacobian)
+        if restart is not None:
+            options["restart"] = restart
         return optx.root_find(
             form.reduced_residual,
             self.root_finder,
             z0,
-            (ctx, span),
-            options=dict(scale=_residual_scale(ctx), jacobian=form.reduced_jacobian),
+            (ctx, span, history),
+            options=options,
             max_steps=max_steps,
             adjoint=self.adjoint,
             throw=False,

@@ -211,6 +211,40 @@ def test_vmap_matches_loop_on_the_double_pendulum():
     np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-14)
 
 
+def test_restart_from_the_trajectory_seed():
+    # The double pendulum at h = 1: on some steps the start from the previous curve does not
+    # converge within the first try, and the restart from the trajectory seed does.
+    problem = problems.double_pendulum()
+
+    def run(y, max_steps=256):
+        solver = dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(16),
+            root_find_max_steps=max_steps,
+        )
+        sol = diffrax.diffeqsolve(
+            problem.term, solver, 0.0, 5.0, 1.0, y, args=problem.args, throw=False,
+            saveat=diffrax.SaveAt(t1=True, solver_state=True),
+        )
+        return sol.ys[0][-1], sol.result, sol.solver_state.restarts
+
+    q, result, restarts = eqx.filter_jit(run)(problem.y0)
+    assert result == diffrax.RESULTS.successful
+    assert int(restarts) >= 1 and np.all(np.isfinite(np.asarray(q)))
+    # a member that restarts and one that does not, in one batch, as in a loop
+    q0, p0 = problem.y0
+    scales = jnp.array([0.1, 1.0])
+    loop = [eqx.filter_jit(run)((q0 * s, p0 * s)) for s in scales]
+    batched = eqx.filter_jit(jax.vmap(lambda s: run((q0 * s, p0 * s))))(scales)
+    assert [int(r) for _, _, r in loop] == [int(r) for r in batched[2]]
+    assert int(loop[0][2]) == 0 < int(loop[1][2])
+    np.testing.assert_allclose(
+        np.asarray(batched[0]), np.stack([np.asarray(q) for q, _, _ in loop]), rtol=0, atol=1e-14
+    )
+    # with no iterations left for a second try (cap <= first try) the same solve fails
+    _, result, restarts = eqx.filter_jit(run)(problem.y0, max_steps=16)
+    assert result != diffrax.RESULTS.successful and int(restarts) == 0
+
+
 def test_gradient_through_projected_steps():
     # d q(T) / d q0 of the oscillator is cos(T); implicit differentiation of each projected
     # step's square system gives it.
