@@ -2,7 +2,8 @@
 
 Members: 10 steps of h = 0.1 of the harmonic oscillator from random amplitudes (seeded),
 `NetworkVI(ShallowNetBasis(tanh, 10), GaussLegendre(8))` with its default (projected) step, or
-with `--all-parameter` the `FreeEndpoints()` step. Median of `--repeats` runs after compiling.
+with `--all-parameter` the `FreeEndpoints()` step, or with `--cgvi 7` the polynomial `CGVI(7)`.
+Median of `--repeats` runs after compiling.
 
     taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/ensemble_batch.py --members 512
     taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/ensemble_batch.py \\
@@ -32,11 +33,14 @@ def main(argv=None) -> None:
     parser.add_argument("--members", type=int, default=512)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--all-parameter", action="store_true")
+    parser.add_argument("--cgvi", type=int, default=None, metavar="DEGREE")
     parser.add_argument("--batch-sizes", nargs="+", default=["None", "1", "16", "64"])
     args = parser.parse_args(argv)
     ho = problems.harmonic_oscillator()
     options = dict(formulation=dvi.FreeEndpoints()) if args.all_parameter else {}
     solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8), **options)
+    if args.cgvi is not None:
+        solver = dvi.CGVI(args.cgvi)
 
     def member(y0):
         sol = diffrax.diffeqsolve(ho.term, solver, 0.0, 1.0, 0.1, y0,
@@ -47,6 +51,8 @@ def main(argv=None) -> None:
     q = jnp.asarray(rng.uniform(0.1, 1.0, (args.members, 1)))
     y0 = (q, jnp.zeros_like(q))
     step = "all-parameter" if args.all_parameter else "default (projected)"
+    if args.cgvi is not None:
+        step = f"CGVI({args.cgvi})"
     print(f"{step} step, {args.members} members, median of {args.repeats} runs")
     for text in args.batch_sizes:
         size = None if text == "None" else int(text)

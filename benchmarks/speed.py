@@ -19,16 +19,16 @@
 4. ensembles of oscillator trajectories (10 steps each, random amplitudes, the default
    solver) through `dvi.ensemble` against a Python loop of single jitted solves (timed on
    `--loop-sample` members, its throughput extrapolated): `--members` (default 1024) with the
-   default `batch_size="auto"` (a compiled loop over members on a CPU) and with
-   `batch_size=None` (full vmap, lockstep), and `--vmap-members` (default 128) with
-   `batch_size=None`;
+   default `batch_size=None` (full vmap, lockstep) and with `batch_size=1` (a compiled loop
+   over members), and `--vmap-members` (default 128) with `batch_size=None`;
 5. the floor of that ensemble on this machine: the linear solve of one Newton iteration of
    the projected step (an LU solve, `jnp.linalg.solve`, of the square reduced Jacobian,
    `k·D + D` unknowns: `k = min(S, R + 1)` span coefficients per coordinate and
    `p_{n+1}`), vmapped over `--members` members, per member, times the iterations of a
    member's solve: a lower bound on a member's time that ignores everything else a step
    does (Jacobian, residuals, the span's SVD), and so an upper bound on any ensemble's
-   throughput against the loop; each ensemble's throughput as a fraction of that bound;
+   throughput against the loop; each ensemble's throughput as a fraction of that bound
+   (compiled with the CPU options `dvi.ensemble` uses, as the ensembles are);
 6. with `--devices 8` (default), the same ensemble sharded over 8 virtual CPU devices in a
    subprocess (`XLA_FLAGS=--xla_force_host_platform_device_count=8`), its time and the
    largest difference from the unsharded result.
@@ -171,9 +171,8 @@ def solve_member(y0):
 
 def ensemble_figures(members, vmap_members, loop_sample, repeats):
     """Throughput of `dvi.ensemble` (members per second) against a Python loop of single
-    jitted solves: the default `batch_size` ("auto": one member after another on a CPU) on
-    `members` members, and full `vmap` (`batch_size=None`, lockstep) on `members` and on
-    `vmap_members` members."""
+    jitted solves: the default full `vmap` (`batch_size=None`, lockstep) on `members` and on
+    `vmap_members` members, and one member after another (`batch_size=1`) on `members`."""
     y0 = ensemble_inputs(max(members, vmap_members))
     single = jax.jit(solve_member)
     jax.block_until_ready(single((y0[0][0], y0[1][0])))
@@ -185,7 +184,7 @@ def ensemble_figures(members, vmap_members, loop_sample, repeats):
         loops.append((time.perf_counter() - start) / loop_sample)
     per_loop = statistics.median(loops)
     rows = []
-    runs = [("auto", members), (None, members)]
+    runs = [(None, members), (1, members)]
     if vmap_members != members:
         runs.append((None, vmap_members))
     for mode, n in runs:
@@ -228,7 +227,10 @@ def linear_solve_floor(members, repeats):
     rng = np.random.default_rng(1)
     jac = jnp.asarray(rng.standard_normal((members, n, n)))
     rhs = jnp.asarray(rng.standard_normal((members, n)))
-    solve = jax.jit(jax.vmap(jnp.linalg.solve))
+    from diffrax_vi.ensemble import _cpu_compiler_options
+
+    options = dict(_cpu_compiler_options()) if jax.default_backend() == "cpu" else {}
+    solve = jax.jit(jax.vmap(jnp.linalg.solve), compiler_options=options)
     jax.block_until_ready(solve(jac, rhs))
     per_member = statistics.median(timed(solve, jac, rhs)[1] for _ in range(5 * repeats)) / members
     return per_member, int(sol.solver_state.iterations), n
@@ -434,7 +436,7 @@ def ensemble_section(args):
                 f"{os.cpu_count()} cores): ok={ok}, {float(t_sh) * 1e3:.1f} ms vs unsharded "
                 f"{float(t_un) * 1e3:.1f} ms in the same process "
                 f"({float(t_un) / float(t_sh):.2f}x); max |sharded - unsharded| = "
-                f"{float(diff):.1e}; this process's unsharded run (batch_size 'auto', one "
+                f"{float(diff):.1e}; this process's unsharded run (default batch_size, one "
                 f"device): {rows[0]['ens_s'] * 1e3:.1f} ms"
             )
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
-from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -71,17 +70,35 @@ def _normalise_axes(in_axes, nargs: int) -> tuple:
     return in_axes
 
 
-def _resolve_batch_size(batch_size, mesh: Mesh | None) -> int | None:
-    if batch_size == "auto":
-        devices = jax.devices() if mesh is None else list(mesh.devices.flat)
-        return 1 if all(d.platform == "cpu" for d in devices) else None
+def _resolve_batch_size(batch_size) -> int | None:
     if batch_size is None:
         return None
     if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1:
         raise ValueError(
-            f"batch_size must be 'auto', None or a positive integer, got {batch_size!r}"
+            f"batch_size must be None or a positive integer, got {batch_size!r}"
         )
     return batch_size
+
+
+# XLA's CPU backend (recent jaxlib) hands small reductions to YNNPACK fusions, which on the
+# tiny per-member arrays of a vmapped solve run several times slower than XLA's own loops;
+# only its dot products keep that route.
+_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
+
+
+def _all_cpu(mesh: Mesh | None) -> bool:
+    devices = jax.devices() if mesh is None else list(mesh.devices.flat)
+    return all(d.platform == "cpu" for d in devices)
+
+
+@functools.cache
+def _cpu_compiler_options() -> tuple[tuple[str, str], ...]:
+    """`_CPU_OPTIONS` where this jaxlib knows them, else none."""
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=_CPU_OPTIONS).lower(1.0).compile()
+    except Exception:  # an older or newer XLA without the option
+        return ()
+    return tuple(_CPU_OPTIONS.items())
 
 
 def _chunked(fn: Callable, in_axes: tuple, batch_size: int | None) -> Callable:
@@ -109,14 +126,15 @@ def _compiled(
 ) -> Callable:
     """The jitted batched function; cached so that repeated calls do not retrace."""
     batched = _chunked(fn, in_axes, batch_size)
+    options = dict(_cpu_compiler_options()) if _all_cpu(mesh) else {}
     if mesh is None:
-        return jax.jit(batched)
+        return jax.jit(batched, compiler_options=options)
     specs = tuple(PartitionSpec(axis_name) if a == 0 else PartitionSpec() for a in in_axes)
     # Each device runs the vmapped solve on its own slice; members never communicate.
     sharded = jax.shard_map(
         batched, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(axis_name), check_vma=False
     )
-    return jax.jit(sharded)
+    return jax.jit(sharded, compiler_options=options)
 
 
 def ensemble(
@@ -124,7 +142,7 @@ def ensemble(
     *args: PyTree,
     in_axes: int | None | Sequence[int | None] = 0,
     mesh: Mesh | None = None,
-    batch_size: int | None | Literal["auto"] = "auto",
+    batch_size: int | None = None,
 ) -> PyTree:
     """Run `fn` on every member of an ensemble in one compiled program.
 
@@ -133,17 +151,13 @@ def ensemble(
     ensemble along their leading axis (the same length `B` for all); entries `None` are shared
     by all members. The result is `fn`'s output with a leading axis of length `B`.
 
-    **How members share the hardware** (`batch_size`). The members' solves are independent
-    but not alike: their Newton solves take different numbers of iterations, and some steps
-    need a fresh seed fit where others reuse the last one. Vectorised with `jax.vmap`
-    (`batch_size=None`), all members advance in lockstep and every loop runs as long as its
-    slowest member, which pays on accelerators (many lanes, latency-bound single solves) and
-    costs on CPUs, whose single solves are already compute-bound. With an integer
-    `batch_size = k` the ensemble runs as a compiled loop (`jax.lax.map`) over chunks of `k`
-    vmapped members; `k = 1` solves one member after another inside one program. The default
-    `"auto"` picks `1` when every device is a CPU and `None` otherwise. Measured on a 2-core
-    CPU (`benchmarks/speed.py`, 10-step oscillator solves): `1` runs at the throughput of a
-    Python loop of single jitted solves, full `vmap` several times slower.
+    **How members share the hardware** (`batch_size`). By default (`None`) the members are
+    vectorised with `jax.vmap` and advance in lockstep: every loop of the solve runs as long
+    as its slowest member. With an integer `batch_size = k` the ensemble runs as a compiled
+    loop (`jax.lax.map`) over chunks of `k` vmapped members; `k = 1` solves one member after
+    another inside one program, which suits solves whose members take very different
+    numbers of iterations (the all-parameter network step on a CPU). The benchmarks page
+    compares them.
 
     With a `mesh` (see `ensemble_mesh`) the ensemble is split along the mesh's single axis with
     `jax.shard_map`: each device solves its slice as above, with no communication between
@@ -166,8 +180,8 @@ def ensemble(
     - `args`: the arguments, batched along their leading axis where `in_axes` is `0`.
     - `in_axes`: `0` (default: every argument is batched), `None`, or one entry per argument.
     - `mesh`: a one-axis `jax.sharding.Mesh` to split the ensemble over; default: no sharding.
-    - `batch_size`: `"auto"` (default), `None` (vmap over all members of a device at once) or
-      a positive integer (a compiled loop over chunks of that many vmapped members).
+    - `batch_size`: `None` (default: vmap over all members of a device at once) or a positive
+      integer (a compiled loop over chunks of that many vmapped members).
 
     **Returns:**
 
@@ -178,14 +192,14 @@ def ensemble(
     in_axes = _normalise_axes(in_axes, len(args))
     size = _batch_size(args, in_axes)
     if mesh is None:
-        chunk = _resolve_batch_size(batch_size, None)
+        chunk = _resolve_batch_size(batch_size)
         return _compiled(fn, in_axes, None, _AXIS, chunk)(*args)
     if not isinstance(mesh, Mesh) or len(mesh.axis_names) != 1:
         raise ValueError(
             f"mesh must be a one-axis jax.sharding.Mesh (see ensemble_mesh), got {mesh!r}"
         )
     (axis_name,) = mesh.axis_names
-    chunk = _resolve_batch_size(batch_size, mesh)
+    chunk = _resolve_batch_size(batch_size)
     ndev = mesh.devices.size
     padded = -(-size // ndev) * ndev
 
