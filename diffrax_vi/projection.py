@@ -40,6 +40,7 @@ from jaxtyping import Array
 from .activations import ReLUk, gelu, sigmoid, tanh
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
+from .degenerate import first_order_end_correction
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
 from .lazy import unless_all_skip
 from .linalg import _work_dtype, solve
@@ -345,36 +346,6 @@ class VariableProjection(FreeEndpoints):
         if ctx is None:
             return q1, p1
         return q1 + first_order_end_correction(ctx, q1, p1), p1
-
-
-def first_order_end_correction(ctx: StepContext, q1: Array, p1: Array) -> Array:
-    """The change of `q_{n+1}` that a first-order Lagrangian's end state needs; zero for
-    any other.
-
-    Where `ϑ = ∂L/∂v` does not depend on `v` (an IODE such as the degenerate pendulum), the
-    flow keeps `p = ϑ(t, q)`. The step's `p_{n+1}` is the natural boundary value of the
-    discrete action and inherits its superconvergence, but the coordinates that `ϑ` reads
-    enter the action undifferentiated: `q_h(1)` extrapolates them from the nodes, with the
-    span's own (first-order) error. One Gauss–Newton update, `Δq = (∂ϑ/∂q)^+ (p_{n+1} −
-    ϑ(q_h(1)))`, takes them from `p_{n+1}` instead and leaves the others as they are. When
-    `∂ϑ/∂v` has any nonzero entry at the end point the change is zero.
-    """
-    t = ctx.t + ctx.h
-    v = jnp.zeros_like(q1)
-
-    def theta(q, v_):
-        return ctx.term.momentum(t, q, v_, ctx.args)
-
-    jq, jv = jax.lax.stop_gradient(jax.jacfwd(theta, argnums=(0, 1))(q1, v))
-    first_order = jnp.all(jv == 0)
-    work = _work_dtype(q1.dtype)
-    # (∂ϑ/∂q)^+ by SVD (`jnp.linalg.pinv` would put a float64 constant into float32 steps)
-    u, sv, vt = jnp.linalg.svd(jq.astype(work))
-    kept = sv > 10 * max(jq.shape) * jnp.finfo(work).eps * sv[0]
-    inv = jnp.where(kept, 1 / jnp.where(kept, sv, 1), 0)
-    misfit = (p1 - theta(q1, v)).astype(work)
-    step = (vt.T @ (inv * (u.T @ misfit))).astype(q1.dtype)
-    return jnp.where(first_order, step, jnp.zeros_like(step))
 
 
 class _NewtonState(eqx.Module):

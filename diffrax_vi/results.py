@@ -2,7 +2,9 @@
 
 A failed step ends `diffrax.diffeqsolve` with one of these members of `diffrax.RESULTS`: four
 for the ways the nonlinear solve of a step can end without a root, one for a step that cannot
-be taken at all:
+be taken at all, one for a converged step whose end state is off the primary constraint of a
+Lagrangian linear in the velocities (by more than `eps ** 0.5` relative to
+`1 + max(|q_n|, |p_n|)`; see `diffrax_vi.degenerate`):
 
 | member | `failure_kind` | meaning |
 |---|---|---|
@@ -11,6 +13,7 @@ be taken at all:
 | `RESULTS.vi_step_nonfinite` | `"nonfinite"` | NaN or inf in the residual or in the end state |
 | `RESULTS.vi_step_singular` | `"singular"` | the linear solve of an iteration broke down |
 | `RESULTS.vi_step_size_invalid` | `"step_size"` | the step is zero or not finite (`dt0`, `t0`) |
+| `RESULTS.vi_constraint_drift` | `"constraint_drift"` | end state off `p = ϑ(q)` (first order) |
 
 diffrax's own failures have kinds too (`"max_steps"`, `"max_rejected"`, `"dt_min"`), and so do
 the results of optimistix and lineax (a divergent root find is `"diverged"`); see `FAILURE_KINDS`.
@@ -74,6 +77,13 @@ _MESSAGES = {
         "diffrax_vi: the step size must be finite and non-zero (check dt0, t0 and t1: a zero "
         "or NaN dt0, or an infinite t0, gives such a step)." + _WHERE
     ),
+    "vi_constraint_drift": (
+        "diffrax_vi: a step of a Lagrangian linear in the velocities converged to an end state "
+        "off its primary constraint p = dL/dv(q) (by more than sqrt(eps) relative to "
+        "1 + max(|q|, |p|)): its accuracy is lost. The all-parameter network step drifts "
+        "this way; use the projected step (formulation=None or VariableProjection()) or a "
+        "smaller step." + _WHERE
+    ),
 }
 
 
@@ -96,6 +106,7 @@ FAILURE_KINDS = {
     "vi_step_nonfinite": "nonfinite",
     "vi_step_singular": "singular",
     "vi_step_size_invalid": "step_size",
+    "vi_constraint_drift": "constraint_drift",
     # diffrax's own failures: the step budget, the step size controller.
     "max_steps_reached": "max_steps",
     "max_steps_rejected": "max_rejected",
@@ -139,7 +150,8 @@ def failure_kind(result) -> str | np.ndarray:
 
     `"ok"` (`successful`, `event_occurred`); for a step's nonlinear solve `"maxiter"`,
     `"stalled"`, `"nonfinite"`, `"singular"`, and `"diverged"` (optimistix's divergence);
-    `"step_size"` (a zero or non-finite step); diffrax's `"max_steps"` (the step budget ran
+    `"step_size"` (a zero or non-finite step); `"constraint_drift"` (a first-order
+    Lagrangian's step off its primary constraint); diffrax's `"max_steps"` (the step budget ran
     out), `"max_rejected"` and `"dt_min"` (adaptive steps); `"other"` for anything else.
 
     Accepts a `diffrax.RESULTS` or `optimistix.RESULTS` member (e.g. `sol.result`), concrete,
@@ -175,6 +187,9 @@ class StepReport(eqx.Module):
       finders that are not `diffrax_vi`'s own).
     - `iterations`: nonlinear iterations of the step.
     - `result`: `diffrax.RESULTS.successful` or one of the step failures.
+    - `constraint`: for a Lagrangian linear in the velocities, `max|p_{n+1} − ϑ(q_{n+1})|`
+      relative to `1 + max(|q_n|, |p_n|)` (`RESULTS.vi_constraint_drift` above `sqrt(eps)`);
+      0 for any other Lagrangian.
     """
 
     t: Array
@@ -183,6 +198,7 @@ class StepReport(eqx.Module):
     tolerance: Array
     iterations: Array
     result: diffrax.RESULTS
+    constraint: Array
 
 
 def describe_failure(sol: diffrax.Solution) -> str | None:
@@ -247,6 +263,13 @@ def describe_failure(sol: diffrax.Solution) -> str | None:
         return (
             f"{kind}: the step {step} could not start: {start} (q, p) is not finite (NaN or "
             f"inf). Check y0 = (q, p); the Lagrangian and the step are not at fault.{caveat}"
+        )
+    if kind == "constraint_drift":
+        constraint = float(report.constraint)
+        return (
+            f"{kind}: step {step} converged (residual {residual:.3e}, {iterations} iterations) "
+            f"to an end state {constraint:.3e} (relative) off the primary constraint "
+            f"p = dL/dv(q). {message}"
         )
     bound = (
         f"tolerance {tolerance:.3e}"

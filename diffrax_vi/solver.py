@@ -19,6 +19,7 @@ from jaxtyping import Array, PyTree
 from .ansatz.base import AbstractBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
+from .degenerate import CONSTRAINT_TOLERANCE, primary_constraint_violation
 from .formulation import (
     AbstractFormulation,
     FreeEndpoints,
@@ -476,6 +477,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 tolerance=jnp.full((), jnp.nan, ctx.q0.dtype),
                 iterations=zero,
                 result=diffrax.RESULTS.successful,
+                constraint=jnp.zeros((), ctx.q0.dtype),
             ),
         )
 
@@ -609,6 +611,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         result = diffrax.RESULTS.where(
             (ctx.h == 0) | ~jnp.isfinite(ctx.h), STEP_FAILURES["vi_step_size_invalid"], result
         )
+        scale = _residual_scale(ctx)
+        constraint = (primary_constraint_violation(ctx, q1, p1) / scale).astype(ctx.q0.dtype)
+        drift = constraint > float(jnp.finfo(ctx.q0.dtype).eps) ** CONSTRAINT_TOLERANCE
+        result = diffrax.RESULTS.where(
+            drift & (result == diffrax.RESULTS.successful),
+            STEP_FAILURES["vi_constraint_drift"],
+            result,
+        )
         # A failed step's end state is never passed off as data: the steps before it stay,
         # this one is NaN (with `throw=False`), and `report` says where and why it failed.
         failed = result != diffrax.RESULTS.successful
@@ -661,6 +671,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 tolerance=tolerance,
                 iterations=n,
                 result=result,
+                constraint=constraint,
             ),
         )
         y_error = None

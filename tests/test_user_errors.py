@@ -173,13 +173,58 @@ def test_what_a_nan_time_does_inside_diffeqsolve():
 # -- failure reports -------------------------------------------------------------------------
 def test_each_member_has_its_own_kind():
     kinds = [dvi.failure_kind(member) for member in STEP_FAILURES.values()]
-    assert kinds == ["maxiter", "stalled", "nonfinite", "singular", "step_size"]
+    assert kinds == [
+        "maxiter", "stalled", "nonfinite", "singular", "step_size", "constraint_drift"
+    ]
     assert dvi.failure_kind(diffrax.RESULTS.max_steps_reached) == "max_steps"
     assert dvi.failure_kind(diffrax.RESULTS.dt_min_reached) == "dt_min"
     assert dvi.failure_kind(diffrax.RESULTS.nonlinear_divergence) == "diverged"
     assert dvi.failure_kind(diffrax.RESULTS.internal_error) == "other"
     # Every member of diffrax.RESULTS is classified, and the table names real members.
     assert set(FAILURE_KINDS) <= set(diffrax.RESULTS._name_to_item)
+
+
+ROTATION = dvi.LagrangianTerm(lambda t, q, v, args: q[0] * v[1] - 0.5 * q @ q)
+ROTATION_Y0 = (jnp.array([0.5, 0.2]), jnp.array([0.0, 0.5]))
+
+
+def _rotation(activation, width, formulation):
+    """Issue 29's degenerate example: five steps of 0.1 of L = q0 v1 - |q|²/2 (a rotation)."""
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(activation, width), formulation=formulation)
+    sol = diffrax.diffeqsolve(
+        ROTATION, solver, 0.0, 0.5, 0.1, ROTATION_Y0, throw=False,
+        saveat=diffrax.SaveAt(steps=True, solver_state=True),
+    )  # fmt: skip
+    n = int(sol.stats["num_accepted_steps"])
+    t = np.asarray(sol.ts)[:n]
+    exact = np.stack([0.5 * np.cos(t) - 0.2 * np.sin(t), 0.2 * np.cos(t) + 0.5 * np.sin(t)], 1)
+    return sol, np.max(np.abs(np.asarray(sol.ys[0])[:n] - exact))
+
+
+def test_constraint_drift_of_a_degenerate_lagrangian_fails_the_step():
+    # The all-parameter step, tanh 10: every step converges, but p - ϑ(q) grows geometrically;
+    # the monitor stops it once it exceeds sqrt(eps) (relative), with its own result.
+    sol, _ = _rotation(dvi.tanh, 10, dvi.FreeEndpoints())
+    assert dvi.failure_kind(sol.result) == "constraint_drift"
+    report = sol.solver_state.report
+    assert float(report.constraint) > np.sqrt(np.finfo(np.float64).eps)
+    assert int(report.iterations) < 256  # its solve ended by converging, not at the cap
+    line = dvi.describe_failure(sol)
+    assert line.startswith("constraint_drift: step [") and "off the primary constraint" in line
+    # GELU 8 drifts less (a few 1e-9) and still succeeds
+    sol, err = _rotation(dvi.gelu, 8, dvi.FreeEndpoints())
+    assert sol.result == diffrax.RESULTS.successful and err <= 1e-8
+    assert 0 < float(sol.solver_state.report.constraint) <= np.sqrt(np.finfo(np.float64).eps)
+    # the default (projected) step keeps the constraint: tanh 10 succeeds at round-off
+    sol, err = _rotation(dvi.tanh, 10, None)
+    assert sol.result == diffrax.RESULTS.successful and err <= 1e-13
+    assert float(sol.solver_state.report.constraint) <= 1e-15
+
+
+def test_regular_lagrangians_report_no_constraint():
+    sol = _solve((Q, P))
+    assert sol.result == diffrax.RESULTS.successful
+    assert float(sol.solver_state.report.constraint) == 0.0
 
 
 def _solve(y0, *, t1=0.3, **kwargs):

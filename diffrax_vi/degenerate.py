@@ -1,0 +1,71 @@
+"""Lagrangians linear in the velocities (first-order, degenerate): the primary constraint.
+
+Where `ϑ = ∂L/∂v` does not depend on `v` (an IODE such as the degenerate pendulum,
+`L = ϑ(q)·v − H(q)`), the flow keeps the state on `p = ϑ(t, q)`. A step's end state can leave
+that constraint without its residual showing it; these helpers put `q_{n+1}` back on it
+(`first_order_end_correction`, used by the projected step) and measure how far an end state
+is off it (`primary_constraint_violation`, which every step checks against
+`CONSTRAINT_TOLERANCE`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from .formulation import StepContext
+from .linalg import _work_dtype
+
+__all__ = [
+    "CONSTRAINT_TOLERANCE",
+    "first_order_end_correction",
+    "primary_constraint_violation",
+]
+
+# A step of a first-order Lagrangian fails (`RESULTS.vi_constraint_drift`) where its end
+# state is further than `eps ** CONSTRAINT_TOLERANCE` (half the working digits) off the
+# primary constraint, relative to the step's residual scale `1 + max(|q_n|, |p_n|)`.
+CONSTRAINT_TOLERANCE = 0.5
+
+
+def _momentum_map(ctx: StepContext, q1: Array):
+    """`ϑ(t_{n+1}, ·, v)` and its Jacobians in `q` and `v` at `(q1, v = 0)`."""
+    t = ctx.t + ctx.h
+    v = jnp.zeros_like(q1)
+
+    def theta(q, v_):
+        return ctx.term.momentum(t, q, v_, ctx.args)
+
+    jq, jv = jax.lax.stop_gradient(jax.jacfwd(theta, argnums=(0, 1))(q1, v))
+    return lambda q: theta(q, v), jq, jnp.all(jv == 0)
+
+
+def first_order_end_correction(ctx: StepContext, q1: Array, p1: Array) -> Array:
+    """The change of `q_{n+1}` that a first-order Lagrangian's end state needs; zero for
+    any other.
+
+    The step's `p_{n+1}` is the natural boundary value of the discrete action and inherits its
+    superconvergence, but the coordinates that `ϑ` reads enter the action undifferentiated:
+    `q_h(1)` extrapolates them from the nodes, with the span's own (first-order) error. One
+    Gauss–Newton update, `Δq = (∂ϑ/∂q)^+ (p_{n+1} − ϑ(q_h(1)))`, takes them from `p_{n+1}`
+    instead and leaves the others as they are. When `∂ϑ/∂v` has any nonzero entry at the end
+    point the change is zero.
+    """
+    theta, jq, first_order = _momentum_map(ctx, q1)
+    work = _work_dtype(q1.dtype)
+    # (∂ϑ/∂q)^+ by SVD (`jnp.linalg.pinv` would put a float64 constant into float32 steps)
+    u, sv, vt = jnp.linalg.svd(jq.astype(work))
+    kept = sv > 10 * max(jq.shape) * jnp.finfo(work).eps * sv[0]
+    inv = jnp.where(kept, 1 / jnp.where(kept, sv, 1), 0)
+    misfit = (p1 - theta(q1)).astype(work)
+    step = (vt.T @ (inv * (u.T @ misfit))).astype(q1.dtype)
+    return jnp.where(first_order, step, jnp.zeros_like(step))
+
+
+def primary_constraint_violation(ctx: StepContext, q1: Array, p1: Array) -> Array:
+    """`max|p_{n+1} − ϑ(t_{n+1}, q_{n+1})|` where `ϑ` does not depend on `v` at the end point
+    (a first-order Lagrangian), else 0; not differentiated."""
+    theta, _, first_order = _momentum_map(ctx, q1)
+    gap = jnp.max(jnp.abs(p1 - theta(q1)))
+    return jax.lax.stop_gradient(jnp.where(first_order, gap, jnp.zeros_like(gap)))
