@@ -42,7 +42,13 @@ def lagrange_weights(points: tuple[float, ...], tau: Array) -> Array:
     n = len(points)
     # ℓ_k(τ) = w_k Π_{m≠k} (τ − x_m): a product over the other points, no division by zero.
     others = jnp.where(np.eye(n, dtype=bool), jnp.ones((), dtype), diff[None, :])
-    return w * jnp.prod(others, axis=1)
+    values = w * jnp.prod(others, axis=1)
+    # At a point the rounded weight times the product can miss 1 by an ulp, which would
+    # scale the state by 1 ± eps on every step (a linear energy drift): there the values are
+    # exactly one-hot, with the derivative of the formula (`v − stop_gradient(v)` is zero).
+    at = diff == 0
+    exact = jnp.where(jnp.any(at), at.astype(dtype), values)
+    return jax.lax.stop_gradient(exact) + (values - jax.lax.stop_gradient(values))
 
 
 class NetworkInterpolation(diffrax.AbstractLocalInterpolation):

@@ -380,7 +380,9 @@ class RoundoffNewton(optx.AbstractRootFinder):
     **Arguments:**
 
     - `ftol`: residual for immediate convergence, in units of `eps` of the working dtype
-      times the residual scale. Default 64.
+      times the residual scale. Default 64. `0` runs every solve to round-off: it ends only
+      once the updates stop shrinking (the rule of `floor`), which removes the bias that
+      the first accepted update's rounding leaves (see the benchmarks page on long runs).
     - `floor`: largest residual accepted once the updates stop shrinking, in the same units.
       Default 4096.
     - `max_backtracks`: halvings of the step in one line search. Default 20.
@@ -398,11 +400,12 @@ class RoundoffNewton(optx.AbstractRootFinder):
     norm: Callable = optx.max_norm
 
     def __check_init__(self):
-        for name in ("ftol", "floor"):
+        for name, least in (("ftol", 0), ("floor", 1e-300)):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and not isinstance(value, bool)
-                    and value > 0 and math.isfinite(value)):
-                raise ValueError(f"{name} must be a positive number (of eps), got {value!r}")
+                    and value >= least and math.isfinite(value)):
+                kind = "a non-negative" if least == 0 else "a positive"
+                raise ValueError(f"{name} must be {kind} number (of eps), got {value!r}")
         if self.floor < self.ftol:
             raise ValueError(f"floor ({self.floor}) must be at least ftol ({self.ftol})")
         for name in ("max_backtracks", "max_stalls"):
@@ -462,6 +465,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
         f_new = jnp.where(decreased, f_new, state.f)
         fmax_new = jnp.max(jnp.abs(f_new))
         norm = jnp.max(jnp.abs(a * d))
+        iterations = state.iterations + 1
         converged = fmax_new <= self._tolerance("ftol", dtype) * scale
         # Rounding has taken over once a full update near the root is no smaller than the
         # one before it.
@@ -470,7 +474,6 @@ class RoundoffNewton(optx.AbstractRootFinder):
         )
         stalls = jnp.where(decreased, 0, state.stalls + 1)
         step_norm = jnp.where(decreased, norm, state.step_norm)
-        iterations = state.iterations + 1
         restarted = state.restarted
         restart = options.get("restart")
         if restart is not None:
