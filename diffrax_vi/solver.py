@@ -405,6 +405,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return [name for name in names if getattr(self, name) != defaults[name]]
 
     @property
+    def _roots_may_drift(self) -> bool:
+        """Whether the step solves for all the parameters of a nonlinear ansatz, whose roots
+        are not isolated: the one step the constraint monitor fails."""
+        return not isinstance(self.formulation, VariableProjection) and not self.basis.linear
+
+    @property
     def _companion_root_finder(self) -> optx.AbstractRootFinder:
         """The root finder of the error estimate's cGVI companion."""
         if isinstance(self.root_finder, RoundoffNewton):
@@ -614,6 +620,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         scale = _residual_scale(ctx)
         constraint = (primary_constraint_violation(ctx, q1, p1) / scale).astype(ctx.q0.dtype)
         drift = constraint > float(jnp.finfo(ctx.q0.dtype).eps) ** CONSTRAINT_TOLERANCE
+        # Only where the step's roots are not isolated (the all-parameter step of a nonlinear
+        # ansatz) can the end state walk off the constraint from step to step; elsewhere its
+        # distance is the step's truncation error, reported but not failed.
+        drift = drift & self._roots_may_drift
         result = diffrax.RESULTS.where(
             drift & (result == diffrax.RESULTS.successful),
             STEP_FAILURES["vi_constraint_drift"],
