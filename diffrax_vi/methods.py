@@ -27,9 +27,10 @@ from .ansatz.dense import DenseNetBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
-from .nonlinear import RegularisedNewton
+from .nonlinear import AbstractDampedNewton, RegularisedNewton
 from .oga import OGA, OGA1d, OGA1dNormalized
 from .oga.symmetry import MirrorPairs, SharedMirrorPairs
+from .projection import RoundoffNewton, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .seeding.fit import AbstractParameterSeed, InitialWeights, LeastSquaresFit
 from .seeding.training import LSGD
@@ -264,10 +265,31 @@ def CGVI(
 ) -> NetworkVI:
     """Classical continuous-Galerkin variational integrator: a polynomial of `degree` in
     Lagrange form (`LagrangeBasis`), free endpoints, Gauss–Legendre with `degree + 1` nodes
-    by default (order `2·degree`), seeded by an exact least-squares fit to the trajectory."""
+    by default (order `2·degree`).
+
+    By default the step is solved on the span of the Lagrange basis in coordinates that are
+    orthonormal in the quadrature's norm (`VariableProjection()`), by Newton's method
+    (`RoundoffNewton(ftol=1)`) from the previous step's polynomial continued: a square,
+    well-conditioned system. A seed option (`initial_guess_method`,
+    `initial_trajectory_method`, `extrapolation_substep`, ...) or a damped root finder
+    (`regularization_factor`, `LevenbergMarquardt()`) selects the reference's form instead:
+    the values at the points as unknowns (`FreeEndpoints()`), seeded by an exact
+    least-squares fit to the trajectory. Both solve the same equations for the same
+    polynomial."""
     basis = LagrangeBasis(degree, points)
     quadrature = quadrature if quadrature is not None else GaussLegendre(degree + 1)
-    return _build("CGVI", basis, quadrature, FreeEndpoints(), LeastSquaresFit(), options)
+    seed_options = (set(options) & _KNOWN) - {"max_iterations"}
+    damped = "regularization_factor" in options or isinstance(
+        options.get("root_finder"), AbstractDampedNewton
+    )
+    if seed_options or damped:
+        return _build("CGVI", basis, quadrature, FreeEndpoints(), LeastSquaresFit(), options)
+    _build("CGVI", basis, quadrature, FreeEndpoints(), LeastSquaresFit(), options)  # checks
+    kwargs: dict[str, Any] = {k: v for k, v in options.items() if k in _SOLVER_OPTIONS}
+    if options.get("max_iterations") is not None:
+        kwargs["root_find_max_steps"] = options["max_iterations"]
+    kwargs.setdefault("root_finder", RoundoffNewton(ftol=1.0))
+    return NetworkVI(basis, quadrature, formulation=VariableProjection(), **kwargs)
 
 
 for _method in (ShallowNet, ShallowNetAutodiff, ShallowNetReversible, ShallowNetAutodiffReversible):

@@ -56,13 +56,27 @@ __all__ = [
 ]
 
 
+def _projectable(basis: AbstractBasis) -> bool:
+    """A shallow network without mirrored pairs, or a coordinatewise ansatz linear in its
+    parameters (an array `(P, D)`)."""
+    if isinstance(basis, ShallowNetBasis):
+        return not basis.mirrored
+    return bool(basis.linear and basis.coordinatewise)
+
+
+def _features(basis: AbstractBasis) -> int:
+    """The features per coordinate: the network's width, or the ansatz's parameters."""
+    return basis.width if isinstance(basis, ShallowNetBasis) else basis.num_params()
+
+
 class ProjectedSpan(eqx.Module):
     """The orthonormalised feature span of one step, per coordinate `d`.
 
     `gq`, `gv` (`(D, R, k)`): values and τ-slopes of the `k` span directions at the nodes;
     `g0`, `g1` (`(D, k)`): their values at `τ = 0` and `τ = 1`; `to_alpha` (`(D, S, k)`): the
     output weights of each direction; `live` (`(k, D)`): directions kept (the others are
-    numerically absent from the span and pinned to zero); `hidden`: `(w, β)`, each `(S, D)`.
+    numerically absent from the span and pinned to zero); `hidden`: `(w, β)`, each `(S, D)`,
+    for a network, `()` for a linear ansatz.
     """
 
     gq: Array
@@ -71,7 +85,7 @@ class ProjectedSpan(eqx.Module):
     g1: Array
     to_alpha: Array
     live: Array
-    hidden: tuple[Array, Array]
+    hidden: tuple[Array, Array] | tuple[()]
 
 
 class AbstractHiddenLayer(eqx.Module):
@@ -188,37 +202,56 @@ class VariableProjection(FreeEndpoints):
             raise ValueError(f"rtol must be None or a number in [0, 1), got {self.rtol!r}")
 
     def check_basis(self, basis: AbstractBasis) -> None:
-        """Refuse an ansatz the projection cannot split, or a rank above the width."""
-        if not isinstance(basis, ShallowNetBasis) or basis.mirrored:
+        """Refuse an ansatz the projection cannot split, or a rank above the span's size."""
+        if not _projectable(basis):
             raise ValueError(
-                "VariableProjection() splits a shallow network into hidden layer and output "
-                f"weights; it needs a ShallowNetBasis without mirrored pairs, got {basis!r}. "
-                "Use FreeEndpoints() for other ansätze."
+                "VariableProjection() solves for the output weights of a fixed set of "
+                "features: it needs a ShallowNetBasis without mirrored pairs (the features of "
+                "its hidden layer) or an ansatz linear in its parameters such as LagrangeBasis "
+                f"(its basis functions); got {basis!r}. Use FreeEndpoints() for other ansätze."
             )
-        if self.rank is not None and self.rank > basis.width:
+        if not isinstance(basis, ShallowNetBasis) and not isinstance(self.hidden, UniformLayer):
             raise ValueError(
-                f"rank={self.rank} exceeds the network's width {basis.width}: the span of "
-                "its features has at most width directions"
+                f"{basis!r} has no hidden layer to take from a seed: hidden= applies to "
+                "networks; leave it at its default for a linear ansatz"
+            )
+        if self.rank is not None and self.rank > _features(basis):
+            raise ValueError(
+                f"rank={self.rank} exceeds the {_features(basis)} features of {basis!r}: "
+                "the span has at most that many directions"
             )
 
-    def span_rank(self, basis: ShallowNetBasis, num_nodes: int) -> int:
+    def span_rank(self, basis: AbstractBasis, num_nodes: int) -> int:
         """`k`: the directions kept per coordinate."""
         if self.rank is not None:
             return self.rank
-        return min(basis.width, num_nodes + 1)
+        return min(_features(basis), num_nodes + 1)
 
     def span(self, theta: Array, ctx: StepContext) -> ProjectedSpan:
         """The orthonormalised span of the hidden layer of `theta` on this step."""
         basis = ctx.basis
         dtype = ctx.q0.dtype
-        _, w, beta = basis.split(theta)
         nodes = ctx.nodes.astype(dtype)
         n = nodes.shape[0]
         k = self.span_rank(basis, n)
         taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], dtype)])
-        z = w * taus[:, None, None] + beta  # (K, S, D)
-        value, slope = jax.jvp(basis.activation, (z,), (jnp.ones_like(z),))
-        slope = w * slope
+        dim = ctx.q0.shape[0]
+        if isinstance(basis, ShallowNetBasis):
+            _, w, beta = basis.split(theta)
+            hidden = (w, beta)
+            z = w * taus[:, None, None] + beta  # (K, S, D)
+            value, slope = jax.jvp(basis.activation, (z,), (jnp.ones_like(z),))
+            slope = w * slope
+        else:
+            # A linear ansatz: its basis functions are the features, the same in every
+            # coordinate (column j of the identity as parameters gives function j).
+            hidden = ()
+            eye = jnp.eye(basis.num_params(), dtype=dtype)
+            value, slope = jax.vmap(
+                lambda tau: jax.jvp(lambda t: basis.evaluate(eye, t), (tau,), (jnp.ones_like(tau),))
+            )(taus)
+            value = jnp.repeat(value[:, :, None], dim, axis=2)  # (K, P, D)
+            slope = jnp.repeat(slope[:, :, None], dim, axis=2)
         root_b = jnp.sqrt(ctx.weights.astype(dtype))[:, None, None]
         data = jnp.concatenate([root_b * value[:n], root_b * slope[:n], value[n:]])
         data = jnp.moveaxis(data, 2, 0)  # (D, 2R + 2, S)
@@ -236,7 +269,7 @@ class VariableProjection(FreeEndpoints):
             g1=u[:, 2 * n + 1],
             to_alpha=v * inv[:, None, :],
             live=live.T,
-            hidden=(w, beta),
+            hidden=hidden,
         )
         def cast(a):
             return a if a.dtype == jnp.bool_ else a.astype(dtype)
@@ -261,8 +294,11 @@ class VariableProjection(FreeEndpoints):
         return jnp.where(span.live, c, 0)
 
     def expand(self, c: Array, span: ProjectedSpan) -> Array:
-        """The network parameters `(α, w, β)` whose curve is `Σ_k c_kd (direction k)`."""
+        """The parameters whose curve is `Σ_k c_kd (direction k)`: the network's `(α, w, β)`,
+        or a linear ansatz's coefficients."""
         alpha = jnp.einsum("dsk,kd->sd", span.to_alpha, c)
+        if not span.hidden:
+            return alpha
         w, beta = span.hidden
         return ShallowNetBasis.join(alpha, w, beta)
 

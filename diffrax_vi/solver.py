@@ -274,8 +274,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 f"{self.quadrature!r} has {self.quadrature.num_nodes}. With fewer, the step "
                 "equations do not determine the step."
             )
+        # The fixed span of the projected step needs no seed fit at all.
+        fits_seeds = not (
+            isinstance(self.formulation, VariableProjection)
+            and isinstance(self.formulation.hidden, UniformLayer)
+        )
         if isinstance(self.initial_guess, OGA | OGAReference):
-            if not isinstance(self.basis, ShallowNetBasis):
+            if fits_seeds and not isinstance(self.basis, ShallowNetBasis):
                 raise ValueError(
                     f"an OGA seed fits shallow networks; {self.basis!r} needs another "
                     "initial_guess (e.g. LSGD() for DenseNetBasis, LeastSquaresFit() for "

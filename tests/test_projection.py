@@ -295,8 +295,15 @@ def test_refusals():
             dvi.ShallowNetBasis(dvi.tanh, 10, symmetry=dvi.MirrorPairs()),
             formulation=dvi.VariableProjection(),
         )
-    with pytest.raises(ValueError, match="exceeds the network's width"):
+    with pytest.raises(ValueError, match="exceeds the 6 features"):
         projected(dvi.tanh, 6, 8, rank=7)
+    with pytest.raises(ValueError, match="exceeds the 4 features"):
+        dvi.NetworkVI(dvi.LagrangeBasis(3), formulation=dvi.VariableProjection(rank=5))
+    with pytest.raises(ValueError, match="no hidden layer"):
+        dvi.NetworkVI(
+            dvi.LagrangeBasis(3), formulation=dvi.VariableProjection(hidden=dvi.SeedLayer()),
+            initial_guess=dvi.LeastSquaresFit(),
+        )
     with pytest.raises(ValueError, match="RoundoffNewton"):
         dvi.NetworkVI(
             dvi.ShallowNetBasis(dvi.tanh, 10), formulation=dvi.VariableProjection(),

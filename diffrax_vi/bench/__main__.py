@@ -10,7 +10,10 @@ Commands:
   (default the reference's two; `--solvers projection` runs the projected step,
   `VariableProjection()`);
 - `report`: rebuild `report.md` and the figures from the CSVs in `--out`;
-- `all`: the three studies, then the report.
+- `all`: the three studies, then the report;
+- `long-run`: final error and energy error against wall time over long spans, variational
+  solvers against classical peers (`diffrax_vi.bench.long_run`; `--out` defaults to
+  `benchmarks/results/long_run`, `--solvers` picks the variational solvers by substring).
 
 Every study streams its rows to a CSV in `--out` as they are measured, so an interrupted run
 keeps its partial results. float64 is switched on here (the library itself never does).
@@ -143,6 +146,19 @@ def run_stability(args) -> None:
     from .report import stability_table
 
     print(stability_table(rows))
+
+
+def run_long_run(args, argv=None) -> None:
+    """The long-run study (`diffrax_vi.bench.long_run`), with its own report in `--out`."""
+    from . import long_run
+
+    if args.out is None:
+        args.out = long_run.DEFAULT_OUT
+    command = "python -m diffrax_vi.bench " + " ".join(sys.argv[1:] if argv is None else argv)
+    start = time.perf_counter()
+    long_run.cli(args, command)
+    print(f"long-run: {time.perf_counter() - start:.0f} s; report in {args.out}/report.md",
+          file=sys.stderr)
 
 
 def write_report(out: str, command: str = "", elapsed: float | None = None) -> str:
@@ -344,11 +360,13 @@ def main(argv=None) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("command", choices=["work-precision", "energy", "stability", "report",
-                                            "all"])
+                                            "all", "long-run"])
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true", help="the quick grids (default)")
     mode.add_argument("--full", action="store_true", help="the full grids (hours)")
-    parser.add_argument("--out", default="benchmarks/results", help="output folder")
+    parser.add_argument("--out", default=None,
+                        help="output folder (default benchmarks/results; long-run: "
+                             "benchmarks/results/long_run)")
     parser.add_argument("--problems", nargs="*", help="subset of problems")
     parser.add_argument("--solvers", nargs="*",
                         help="substrings of solver names to keep (stability: of "
@@ -369,6 +387,11 @@ def main(argv=None) -> None:
                              "study and problem (default 1: in this process)")
     args = parser.parse_args(argv)
     args.quick = not args.full
+    if args.command == "long-run":
+        run_long_run(args, argv)
+        return
+    if args.out is None:
+        args.out = "benchmarks/results"
     if args.repeats is None:
         args.repeats = 5 if args.full else 2
     if args.long_steps is None:

@@ -193,9 +193,12 @@ class SeedPolicy(eqx.Module):
         continued; the first starts from a seed fit (`FirstSeedLayer`) or from the constant
         curve q_n."""
         warm = self._warm_seed(ctx, record)
-        if isinstance(rule, UniformLayer):
+        if isinstance(rule, UniformLayer) or not isinstance(ctx.basis, ShallowNetBasis):
             dim = ctx.q0.shape[0]
-            hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
+            if isinstance(ctx.basis, ShallowNetBasis):
+                hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
+            else:  # a linear ansatz: its span has no hidden layer to choose
+                hidden = ctx.basis.zeros(dim, ctx.q0.dtype)
             start = self._continued_or_constant(ctx, record, warm)
         else:
             seed = jax.lax.cond(
