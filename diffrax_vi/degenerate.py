@@ -4,8 +4,8 @@ Where `ϑ = ∂L/∂v` does not depend on `v` (an IODE such as the degenerate pe
 `L = ϑ(q)·v − H(q)`), the flow keeps the state on `p = ϑ(t, q)`. A step's end state can leave
 that constraint without its residual showing it; these helpers put `q_{n+1}` back on it
 (`first_order_end_correction`, used by the projected step) and measure how far an end state
-is off it (`primary_constraint_violation`, which every step checks against
-`CONSTRAINT_TOLERANCE`).
+is off it (`primary_constraint_violation`, which every step reports and the all-parameter
+network step checks against `CONSTRAINT_TOLERANCE` and `CONSTRAINT_GROWTH`).
 """
 
 from __future__ import annotations
@@ -18,15 +18,19 @@ from .formulation import StepContext
 from .linalg import _work_dtype
 
 __all__ = [
+    "CONSTRAINT_GROWTH",
     "CONSTRAINT_TOLERANCE",
     "first_order_end_correction",
     "primary_constraint_violation",
 ]
 
-# A step of a first-order Lagrangian fails (`RESULTS.vi_constraint_drift`) where its end
-# state is further than `eps ** CONSTRAINT_TOLERANCE` (half the working digits) off the
-# primary constraint, relative to the step's residual scale `1 + max(|q_n|, |p_n|)`.
+# An all-parameter network step of a first-order Lagrangian fails
+# (`RESULTS.vi_constraint_drift`) where its end state is further than
+# `eps ** CONSTRAINT_TOLERANCE` (half the working digits) off the primary constraint, relative
+# to the step's residual scale `1 + max(|q_n|, |p_n|)`, and more than `CONSTRAINT_GROWTH`
+# times as far as the run's first step was.
 CONSTRAINT_TOLERANCE = 0.5
+CONSTRAINT_GROWTH = 100.0
 
 
 def _momentum_map(ctx: StepContext, q1: Array):

@@ -2,9 +2,10 @@
 
 A failed step ends `diffrax.diffeqsolve` with one of these members of `diffrax.RESULTS`: four
 for the ways the nonlinear solve of a step can end without a root, one for a step that cannot
-be taken at all, one for a converged all-parameter network step whose end state is off the
-primary constraint of a Lagrangian linear in the velocities (by more than `eps ** 0.5`
-relative to `1 + max(|q_n|, |p_n|)`; see `diffrax_vi.degenerate`):
+be taken at all, one for a converged all-parameter network step whose end state has drifted
+off the primary constraint of a Lagrangian linear in the velocities (by more than `eps ** 0.5`
+relative to `1 + max(|q_n|, |p_n|)`, and 100 times as far as at the run's first step; see
+`diffrax_vi.degenerate`):
 
 | member | `failure_kind` | meaning |
 |---|---|---|
@@ -79,10 +80,10 @@ _MESSAGES = {
     ),
     "vi_constraint_drift": (
         "diffrax_vi: an all-parameter network step of a Lagrangian linear in the velocities "
-        "converged to an end state off its primary constraint p = dL/dv(q) (by more than "
-        "sqrt(eps) relative to 1 + max(|q|, |p|)): its roots are not isolated and its "
-        "accuracy is lost. Use the projected step (formulation=None or VariableProjection()) "
-        "or a polynomial CGVI." + _WHERE
+        "converged to an end state drifting off its primary constraint p = dL/dv(q) (by more "
+        "than sqrt(eps) relative to 1 + max(|q|, |p|), and 100 times as far as at the first "
+        "step): its roots are not isolated and its accuracy is lost. Use the projected step "
+        "(formulation=None or VariableProjection()) or a polynomial CGVI." + _WHERE
     ),
 }
 
@@ -189,8 +190,9 @@ class StepReport(eqx.Module):
     - `result`: `diffrax.RESULTS.successful` or one of the step failures.
     - `constraint`: for a Lagrangian linear in the velocities, `max|p_{n+1} − ϑ(q_{n+1})|`
       relative to `1 + max(|q_n|, |p_n|)`; 0 for any other Lagrangian. Above `sqrt(eps)`
-      the all-parameter step of a network fails (`RESULTS.vi_constraint_drift`); for the
-      other steps, whose roots are isolated, it is the step's truncation error.
+      and 100 times its value at the run's first step, the all-parameter step of a network
+      fails (`RESULTS.vi_constraint_drift`); for the other steps, whose roots are isolated,
+      it is the step's truncation error.
     """
 
     t: Array

@@ -19,7 +19,7 @@ from jaxtyping import Array, PyTree
 from .ansatz.base import AbstractBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
-from .degenerate import CONSTRAINT_TOLERANCE, primary_constraint_violation
+from .degenerate import CONSTRAINT_GROWTH, CONSTRAINT_TOLERANCE, primary_constraint_violation
 from .formulation import (
     AbstractFormulation,
     FreeEndpoints,
@@ -73,6 +73,8 @@ class NetworkVIState(eqx.Module):
     - `report`: how the most recent step's nonlinear solve ended (`StepReport`: start time,
       length, residual, tolerance, iterations, result). After a failed solve with constant
       steps this is the failed step; `diffrax_vi.describe_failure(sol)` prints it.
+    - `first_constraint`: `report.constraint` of the run's first step (NaN before it), the
+      scale against which the constraint monitor measures growth.
     """
 
     seed: SeedRecord
@@ -86,6 +88,7 @@ class NetworkVIState(eqx.Module):
     restarts: Array
     iteration_log: Array
     report: StepReport
+    first_constraint: Array
 
     @property
     def theta(self) -> PyTree:
@@ -490,6 +493,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 result=diffrax.RESULTS.successful,
                 constraint=jnp.zeros((), ctx.q0.dtype),
             ),
+            first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -624,10 +628,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
         scale = _residual_scale(ctx)
         constraint = (primary_constraint_violation(ctx, q1, p1) / scale).astype(ctx.q0.dtype)
-        drift = constraint > float(jnp.finfo(ctx.q0.dtype).eps) ** CONSTRAINT_TOLERANCE
+        first = jnp.where(jnp.isnan(state.first_constraint), constraint, state.first_constraint)
+        # Drift is growth: above eps^CONSTRAINT_TOLERANCE and CONSTRAINT_GROWTH times the
+        # distance of the run's first step (a bounded distance is the step's truncation error).
         # Only where the step's roots are not isolated (the all-parameter step of a nonlinear
-        # ansatz) can the end state walk off the constraint from step to step; elsewhere its
-        # distance is the step's truncation error, reported but not failed.
+        # ansatz) can the end state walk off the constraint from step to step.
+        drift = (constraint > float(jnp.finfo(ctx.q0.dtype).eps) ** CONSTRAINT_TOLERANCE) & (
+            constraint > CONSTRAINT_GROWTH * first
+        )
         drift = drift & self._roots_may_drift
         result = diffrax.RESULTS.where(
             drift & (result == diffrax.RESULTS.successful),
@@ -688,6 +696,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 result=result,
                 constraint=constraint,
             ),
+            first_constraint=first,
         )
         y_error = None
         if self.error_estimate is not None:

@@ -399,7 +399,8 @@ def test_hidden_layer_rules_are_checked():
 
 def test_roundoff_newton_settings_are_checked():
     with pytest.raises(ValueError, match="ftol"):
-        dvi.RoundoffNewton(ftol=0)
+        dvi.RoundoffNewton(ftol=-1)
+    dvi.RoundoffNewton(ftol=0)  # allowed: run every solve to round-off
     with pytest.raises(ValueError, match="floor"):
         dvi.RoundoffNewton(ftol=64, floor=8)
     with pytest.raises(ValueError, match="max_stalls"):

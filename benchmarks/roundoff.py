@@ -1,0 +1,142 @@
+"""Long runs at the round-off limit (issue 28): energy growth and the cost of a step.
+
+1. Energy: the harmonic oscillator at h = 0.5 over `--steps` steps (default 10^5), the running
+   maximum of the relative energy error at 10^1 ... 10^k steps and its growth exponent over
+   the last two decades (a log-log fit; Brouwer's law of random rounding is 0.5), for
+   `CGVI(7)` in its default (projected) and reference (`FreeEndpoints`) forms and the default
+   `NetworkVI` (tanh 10, GL8), each with `RoundoffNewton` stopping at `ftol` 64, 1 and 0
+   (0: until the Newton updates stop shrinking).
+2. Step cost: microseconds per constant step after compilation (median of 5 runs) of
+   `CGVI(6)` in both forms and of `Dopri8`, on the oscillator (h = 0.5), Kepler with
+   e = 0.5 (h = 2π/100) and the double pendulum (h = 0.05), with the mean Newton
+   iterations per step and the final position error against the reference.
+
+    taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/roundoff.py \\
+        [--steps N] [--only energy|cost]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import diffrax_vi as dvi  # noqa: E402
+from diffrax_vi import problems  # noqa: E402
+
+
+def energy_configs():
+    out = {}
+    for ftol in (64.0, 1.0, 0.0):
+        rn = dvi.RoundoffNewton(ftol=ftol)
+        out[f"CGVI(7), projected, ftol {ftol:g}"] = dvi.CGVI(7, root_finder=rn)
+        out[f"CGVI(7), reference form, ftol {ftol:g}"] = dvi.CGVI(
+            7, root_finder=rn, initial_trajectory_method=dvi.HermiteExtrapolation()
+        )
+        out[f"NetworkVI tanh 10, ftol {ftol:g}"] = dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8), root_finder=rn
+        )
+    return out
+
+
+def energy_growth(steps: int) -> None:
+    problem = problems.harmonic_oscillator()
+    h = 0.5
+    marks = np.unique(np.round(np.geomspace(1, steps, 300)).astype(int))
+    ts = jnp.asarray(np.concatenate([[0], marks]) * h)
+    energy = jax.jit(jax.vmap(lambda q, p: problem.energy(0.0, q, p)))
+    decades = [10**k for k in range(1, int(np.log10(steps)) + 1)]
+    print(f"oscillator, h = {h}, {steps} steps: running max of the relative energy error")
+    print("| solver | " + " | ".join(f"{d:g} steps" for d in decades)
+          + " | growth exponent | iterations per step | us per step |")
+    print("|---|" + "---|" * (len(decades) + 3))
+    for name, solver in energy_configs().items():
+        def run(y, solver=solver):
+            return diffrax.diffeqsolve(
+                problem.term, solver, 0.0, steps * h, h, y, args=problem.args,
+                max_steps=steps, saveat=diffrax.SaveAt(ts=ts, solver_state=True), throw=False,
+            )
+        run = jax.jit(run)
+        sol = jax.block_until_ready(run(problem.y0))
+        start = time.perf_counter()
+        sol = jax.block_until_ready(run(problem.y0))
+        us = (time.perf_counter() - start) / steps * 1e6
+        e = np.asarray(energy(sol.ys[0], sol.ys[1]))
+        err = np.maximum.accumulate(np.abs(e - e[0]) / abs(e[0]))
+        done = np.asarray(ts) / h
+        at = [err[np.searchsorted(done, d)] for d in decades]
+        tail = done >= steps / 100
+        slope = np.polyfit(np.log(done[tail]), np.log(np.maximum(err[tail], 1e-18)), 1)[0]
+        its = int(sol.solver_state.iterations) / steps
+        ok = sol.result == diffrax.RESULTS.successful
+        print(f"| {name}{'' if ok else ' (failed)'} | " + " | ".join(f"{a:.1e}" for a in at)
+              + f" | {slope:.2f} | {its:.2f} | {us:.1f} |", flush=True)
+
+
+def step_cost() -> None:
+    cases = {
+        "oscillator (h = 0.5)": (problems.harmonic_oscillator(), 0.5, 4000),
+        "Kepler e = 0.5 (h = 2π/100)": (problems.kepler(eccentricity=0.5), 2 * np.pi / 100, 4000),
+        "double pendulum (h = 0.05)": (problems.double_pendulum(), 0.05, 200),
+    }
+    print("\nstep cost on constant steps (median of 5 runs after compiling)")
+    print("| problem | solver | us per step | / Dopri8 | iterations per step | final error |")
+    print("|---|---|---|---|---|---|")
+    for label, (problem, h, n) in cases.items():
+        solvers = {
+            "Dopri8": diffrax.Dopri8(),
+            "CGVI(6)": dvi.CGVI(6),
+            "CGVI(6), ftol 0": dvi.CGVI(6, root_finder=dvi.RoundoffNewton(ftol=0.0)),
+            "CGVI(6), reference form": dvi.CGVI(6, root_finder=dvi.LevenbergMarquardt()),
+        }
+        base = None
+        q_ref, _ = problem.reference(np.array([n * h]))
+        for name, solver in solvers.items():
+            variational = isinstance(solver, dvi.NetworkVI)
+            term = problem.term if variational else diffrax.ODETerm(problem.term.vf)
+
+            def run(y, solver=solver, term=term, variational=variational):
+                sol = diffrax.diffeqsolve(
+                    term, solver, 0.0, n * h, h, y, args=problem.args, max_steps=n,
+                    saveat=diffrax.SaveAt(t1=True, solver_state=variational), throw=False,
+                )
+                its = sol.solver_state.iterations if variational else jnp.zeros((), jnp.int32)
+                return sol.ys[0][-1], sol.result == diffrax.RESULTS.successful, its
+
+            run = jax.jit(run)
+            q, ok, its = jax.block_until_ready(run(problem.y0))
+            times = []
+            for _ in range(5):
+                start = time.perf_counter()
+                jax.block_until_ready(run(problem.y0))
+                times.append(time.perf_counter() - start)
+            us = statistics.median(times) / n * 1e6
+            base = base or us
+            err = float(np.max(np.abs(np.asarray(q) - q_ref[-1])) / np.max(np.abs(q_ref[-1])))
+            iters = f"{int(its) / n:.2f}" if variational else "-"
+            status = "" if bool(ok) else " (failed)"
+            print(f"| {label} | {name}{status} | {us:.1f} | {us / base:.2f} | {iters} "
+                  f"| {err:.1e} |", flush=True)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=100_000)
+    parser.add_argument("--only", choices=("energy", "cost"), default=None)
+    args = parser.parse_args(argv)
+    if args.only in (None, "energy"):
+        energy_growth(args.steps)
+    if args.only in (None, "cost"):
+        step_cost()
+
+
+if __name__ == "__main__":
+    main()
