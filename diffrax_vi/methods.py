@@ -82,6 +82,15 @@ def _with_substeps(trajectory: AbstractInitialTrajectory, substeps: int):
     return trajectory
 
 
+def _check_options(name: str, options: dict[str, Any]) -> None:
+    unknown = set(options) - _KNOWN - _SOLVER_OPTIONS - _NO_EFFECT
+    if unknown:
+        raise TypeError(
+            f"{name} got unknown option(s) {sorted(unknown)}; accepted: "
+            f"{', '.join(sorted(_KNOWN | _SOLVER_OPTIONS | _NO_EFFECT))}"
+        )
+
+
 def _build(
     name: str,
     basis: AbstractBasis,
@@ -94,12 +103,7 @@ def _build(
         raise TypeError(
             f"{name} needs a quadrature rule such as GaussLegendre(8), got {quadrature!r}"
         )
-    unknown = set(options) - _KNOWN - _SOLVER_OPTIONS - _NO_EFFECT
-    if unknown:
-        raise TypeError(
-            f"{name} got unknown option(s) {sorted(unknown)}; accepted: "
-            f"{', '.join(sorted(_KNOWN | _SOLVER_OPTIONS | _NO_EFFECT))}"
-        )
+    _check_options(name, options)
     kwargs: dict[str, Any] = {k: v for k, v in options.items() if k in _SOLVER_OPTIONS}
     trajectory = options.get("initial_trajectory_method") or IntegratorExtrapolation()
     if options.get("extrapolation_substep") is not None:
@@ -284,7 +288,7 @@ def CGVI(
     )
     if seed_options or damped:
         return _build("CGVI", basis, quadrature, FreeEndpoints(), LeastSquaresFit(), options)
-    _build("CGVI", basis, quadrature, FreeEndpoints(), LeastSquaresFit(), options)  # checks
+    _check_options("CGVI", options)
     kwargs: dict[str, Any] = {k: v for k, v in options.items() if k in _SOLVER_OPTIONS}
     if options.get("max_iterations") is not None:
         kwargs["root_find_max_steps"] = options["max_iterations"]

@@ -220,6 +220,28 @@ def test_cgvi_energy_stays_at_round_off_over_long_runs():
     assert float(jnp.max(jnp.abs(energy - e0))) / abs(e0) <= 5e-14
 
 
+@pytest.mark.parametrize("dtype, bound", [(jnp.float32, 1e-5), (jnp.float16, 2e-2)])
+def test_cgvi_stays_in_its_precision(dtype, bound):
+    problem = problems.harmonic_oscillator(dtype=dtype)
+    sol = diffrax.diffeqsolve(
+        problem.term, dvi.CGVI(4), dtype(0), dtype(1), dtype(0.1), problem.y0,
+        saveat=diffrax.SaveAt(ts=jnp.asarray(problem.ts, dtype)),
+    )  # fmt: skip
+    assert sol.result == diffrax.RESULTS.successful
+    assert sol.ys[0].dtype == dtype and sol.ys[1].dtype == dtype
+    q_ref, _ = problem.reference(np.asarray(sol.ts, np.float64))
+    assert np.max(np.abs(np.asarray(sol.ys[0], np.float64) - q_ref)) <= bound
+
+
+def test_cgvi_refuses_bad_options():
+    with pytest.raises(TypeError, match="unknown option.*'bogus'"):
+        dvi.CGVI(3, bogus=1)
+    with pytest.raises(TypeError, match="quadrature"):
+        dvi.CGVI(3, quadrature=8)
+    with pytest.raises(ValueError, match="degree"):
+        dvi.CGVI(0)
+
+
 def test_lagrange_basis_advance_continues_the_polynomial():
     basis = dvi.LagrangeBasis(3)
     theta = jnp.asarray(np.random.default_rng(1).normal(size=(4, 2)))

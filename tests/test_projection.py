@@ -407,6 +407,20 @@ def test_roundoff_newton_settings_are_checked():
         dvi.RoundoffNewton(max_stalls=0)
 
 
+def test_roundoff_newton_without_tolerance_runs_to_the_floor():
+    # ftol=0: a solve ends only once its updates stop shrinking, so even the oscillator's
+    # linear step (one update reaches the root) takes more than one iteration.
+    problem = problems.harmonic_oscillator()
+    solver = dvi.NetworkVI(
+        dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
+        root_finder=dvi.RoundoffNewton(ftol=0.0), iteration_log=10,
+    )
+    sol = solve(problem, solver)
+    assert sol.result == diffrax.RESULTS.successful
+    assert np.all(np.asarray(sol.solver_state.iteration_log) >= 2)
+    assert max_relative_error(problem, sol) <= 2e-14
+
+
 def test_projection_refuses_the_all_parameter_seed_options():
     basis = dvi.ShallowNetBasis(dvi.tanh, 10)
     with pytest.raises(ValueError, match="all-parameter"):

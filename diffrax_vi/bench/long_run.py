@@ -879,11 +879,9 @@ def _plot_growth(series: Sequence[dict], rows: Sequence[dict], path: str,
         ax.grid(True, which="both", alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=6)
-    for ax in axes.flat[len(problems):]:
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    from .report import save_grid
+
+    save_grid(plt, fig, axes, len(problems), path)
 
 
 def write_report(out: str, *, command: str = "", elapsed: float | None = None,

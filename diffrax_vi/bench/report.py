@@ -233,7 +233,12 @@ def plot_work_precision(rows: Sequence[dict], path) -> None:
         ax.set_ylabel("wall time after compilation [s]")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    for ax in axes.flat[len(problems):]:
+    save_grid(plt, fig, axes, len(problems), path)
+
+
+def save_grid(plt, fig, axes, used: int, path) -> None:
+    """Blank the panels of a figure grid past the first `used`, then save and close it."""
+    for ax in axes.flat[used:]:
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -263,11 +268,7 @@ def plot_energy(rows: Sequence[dict], path) -> None:
         ax.set_ylabel("max |H − H₀| / |H₀| so far")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    for ax in axes.flat[len(problems):]:
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_grid(plt, fig, axes, len(problems), path)
 
 
 def plot_convergence_heatmap(rows: Sequence[dict], path) -> None:
