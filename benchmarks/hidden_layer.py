@@ -51,7 +51,7 @@ import numpy as np  # noqa: E402
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.ansatz.shallow import ShallowNetBasis  # noqa: E402
-from diffrax_vi.projection import ProjectedSpan  # noqa: E402
+from diffrax_vi.projection import ProjectedSpan, feature_span  # noqa: E402
 
 NEWTON = 8  # Newton iterations of each projected solve (1-3 reach round-off)
 
@@ -79,32 +79,19 @@ def differentiable_span(form, ctx, w, beta):
     z = w * taus[:, None, None] + beta
     value, slope = jax.jvp(ctx.basis.activation, (z,), (jnp.ones_like(z),))
     slope = w * slope
-    root_b = jnp.sqrt(ctx.weights.astype(dtype))[:, None, None]
-    data = jnp.moveaxis(jnp.concatenate([root_b * value[:n], root_b * slope[:n], value[n:]]), 2, 0)
-    u, s, vt = jnp.linalg.svd(data, full_matrices=False)
-    u, s, v = u[..., :k], s[..., :k], jnp.swapaxes(vt, 1, 2)[..., :k]
     rtol = form.rtol if form.rtol is not None else float(jnp.finfo(dtype).eps) ** 0.5
-    live = jax.lax.stop_gradient(s > rtol * s[..., :1])
-    inv = jnp.where(live, 1 / jnp.where(live, s, 1), 0)
-    rb = root_b[:, 0, 0]
-    return ProjectedSpan(
-        gq=u[:, :n] / rb[None, :, None], gv=u[:, n : 2 * n] / rb[None, :, None], g0=u[:, 2 * n],
-        g1=u[:, 2 * n + 1], to_alpha=v * inv[:, None, :], live=live.T, hidden=(w, beta),
-    )
+    return feature_span(value, slope, ctx.weights, k, rtol, (w, beta))
 
 
 def projected_solve(solver, ctx, w, beta, differentiable=False):
-    """Newton on the span of `(w, β)`: returns `(c, p1)`, the span, and the last residual."""
+    """Newton on the span of `(w, β)`: returns `(δc, Δp)`, the span, and the last residual."""
     form = solver.formulation
     if differentiable:
         span = differentiable_span(form, ctx, w, beta)
     else:
         span = form.span(ShallowNetBasis.join(jnp.zeros_like(w), w, beta), ctx)
-    # Start: the constant curve q_n, projected on the span (its data columns are orthonormal).
-    b = ctx.weights.astype(w.dtype)
-    c = jnp.einsum("j,djk->kd", b, span.gq) * ctx.q0 + span.g0.T * ctx.q0 + span.g1.T * ctx.q0
-    c = jnp.where(span.live, c, 0)
-    z = (c, ctx.p0)
+    # Start: the constant curve q_n (zero increments).
+    z = (jnp.zeros_like(span.g0.T), jnp.zeros_like(ctx.p0))
     args = (ctx, span)
     flat, unravel = jax.flatten_util.ravel_pytree(z)
 
@@ -123,21 +110,15 @@ def polynomial_span(ctx, degree):
     that size can give."""
     dtype = ctx.q0.dtype
     nodes = ctx.nodes.astype(dtype)
-    n, dim = nodes.shape[0], ctx.q0.shape[0]
+    dim = ctx.q0.shape[0]
     taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], dtype)])
     legendre = [np.polynomial.legendre.Legendre.basis(m, domain=[0, 1]) for m in range(degree + 1)]
     value = jnp.stack([jnp.asarray(poly(np.asarray(taus))) for poly in legendre], axis=1)
     slope = jnp.stack([jnp.asarray(poly.deriv()(np.asarray(taus))) for poly in legendre], axis=1)
-    rb = jnp.sqrt(ctx.weights.astype(dtype))[:, None]
-    data = jnp.concatenate([rb * value[:n], rb * slope[:n], value[n:]])  # (2R + 2, k)
-    u, s, vt = jnp.linalg.svd(data, full_matrices=False)
     k = degree + 1
-    rep = lambda a: jnp.broadcast_to(a, (dim,) + a.shape)  # noqa: E731
-    return ProjectedSpan(
-        gq=rep(u[:n] / rb), gv=rep(u[n : 2 * n] / rb), g0=rep(u[2 * n]), g1=rep(u[2 * n + 1]),
-        to_alpha=rep(vt.T / s), live=jnp.ones((k, dim), bool),
-        hidden=(jnp.zeros((k, dim), dtype), jnp.zeros((k, dim), dtype)),
-    )
+    rep = lambda a: jnp.repeat(a[:, :, None], dim, axis=2)  # noqa: E731
+    zeros = jnp.zeros((k, dim), dtype)
+    return feature_span(rep(value), rep(slope), ctx.weights, k, 0.0, (zeros, zeros))
 
 
 def features_span(ctx, activation, w, beta, exact, k, rtol):
@@ -146,7 +127,7 @@ def features_span(ctx, activation, w, beta, exact, k, rtol):
     `VariableProjection.span` does."""
     dtype = ctx.q0.dtype
     nodes = ctx.nodes.astype(dtype)
-    n, dim = nodes.shape[0], ctx.q0.shape[0]
+    dim = ctx.q0.shape[0]
     taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], dtype)])
     z = w * taus[:, None, None] + beta
     value, slope = jax.jvp(activation, (z,), (jnp.ones_like(z),))
@@ -157,24 +138,14 @@ def features_span(ctx, activation, w, beta, exact, k, rtol):
         ps = jnp.stack([m * taus ** max(m - 1, 0) for m in range(exact)], axis=1)[:, :, None]
         value = jnp.concatenate([pv, value], axis=1)
         slope = jnp.concatenate([ps * ones, slope], axis=1)
-    rb = jnp.sqrt(ctx.weights.astype(dtype))[:, None, None]
-    data = jnp.moveaxis(jnp.concatenate([rb * value[:n], rb * slope[:n], value[n:]]), 2, 0)
-    u, s, vt = jnp.linalg.svd(data, full_matrices=False)
-    u, s, v = u[..., :k], s[..., :k], jnp.swapaxes(vt, 1, 2)[..., :k]
-    live = s > rtol * s[..., :1]
-    inv = jnp.where(live, 1 / jnp.where(live, s, 1), 0)
-    rb = rb[:, 0, 0]
-    return ProjectedSpan(
-        gq=u[:, :n] / rb[None, :, None], gv=u[:, n : 2 * n] / rb[None, :, None], g0=u[:, 2 * n],
-        g1=u[:, 2 * n + 1], to_alpha=v * inv[:, None, :], live=live.T, hidden=(w, beta),
-    )
+    return feature_span(value, slope, ctx.weights, k, rtol, (w, beta))
 
 
 def perturbed_polynomial_span(ctx, k, delta):
     """P_0..P_{k−1}, each plus `delta` times a non-polynomial function
     (`tanh(3τ − 1 + 0.7m)`): a span whose polynomial defect is ~`delta`."""
     nodes = np.asarray(ctx.nodes)
-    n, dim = len(nodes), ctx.q0.shape[0]
+    dim = ctx.q0.shape[0]
     taus = np.concatenate([nodes, [0.0, 1.0]])
     vals, ders = [], []
     for m in range(k):
@@ -182,23 +153,14 @@ def perturbed_polynomial_span(ctx, k, delta):
         arg = 3 * taus - 1 + 0.7 * m
         vals.append(poly(taus) + delta * np.tanh(arg))
         ders.append(poly.deriv()(taus) + delta * 3 / np.cosh(arg) ** 2)
-    value, slope = np.stack(vals, 1), np.stack(ders, 1)
-    rb = np.sqrt(np.asarray(ctx.weights))[:, None]
-    data = np.concatenate([rb * value[:n], rb * slope[:n], value[n:]])
-    u, s, vt = np.linalg.svd(data, full_matrices=False)
-    rep = lambda a: jnp.broadcast_to(jnp.asarray(a), (dim,) + a.shape)  # noqa: E731
+    rep = lambda a: jnp.repeat(jnp.asarray(np.stack(a, 1))[:, :, None], dim, axis=2)  # noqa: E731
     zeros = jnp.zeros((k, dim))
-    return ProjectedSpan(
-        gq=rep(u[:n] / rb), gv=rep(u[n : 2 * n] / rb), g0=rep(u[2 * n]), g1=rep(u[2 * n + 1]),
-        to_alpha=rep(vt.T / s), live=jnp.ones((k, dim), bool), hidden=(zeros, zeros),
-    )
+    return feature_span(rep(vals), rep(ders), ctx.weights, k, 0.0, (zeros, zeros))
 
 
 def solve_on_span(solver, ctx, span):
     form = solver.formulation
-    b = ctx.weights.astype(ctx.q0.dtype)
-    c = jnp.einsum("j,djk->kd", b, span.gq) * ctx.q0 + span.g0.T * ctx.q0 + span.g1.T * ctx.q0
-    z = (jnp.where(span.live, c, 0), ctx.p0)
+    z = (jnp.zeros_like(span.g0.T), jnp.zeros_like(ctx.p0))  # the constant curve q_n
     args = (ctx, span)
     flat, unravel = jax.flatten_util.ravel_pytree(z)
 
@@ -207,12 +169,12 @@ def solve_on_span(solver, ctx, span):
 
     for _ in range(NEWTON):
         flat = flat - jnp.linalg.solve(form.reduced_jacobian(unravel(flat), args), residual(flat))
-    return form.projected_end_state(unravel(flat), span)
+    return form.projected_end_state(unravel(flat), span, ctx)
 
 
 def step_end(solver, ctx, w, beta):
     z, span, res = projected_solve(solver, ctx, w, beta)
-    q1, p1 = solver.formulation.projected_end_state(z, span)
+    q1, p1 = solver.formulation.projected_end_state(z, span, ctx)
     return q1, p1, res, span
 
 
@@ -221,8 +183,8 @@ def hidden_residual(solver, ctx, w, beta):
     output-weight rows `∂Φ/∂α` (S x D), scaled by the residual scale."""
     form = solver.formulation
     z, span, _ = projected_solve(solver, ctx, w, beta, differentiable=True)
-    theta = form.expand(z[0], span)
-    r_theta, cont = dvi.FreeEndpoints().residual((theta, z[1]), ctx)
+    theta = form.expand(form.coefficients(z[0], ctx), span)
+    r_theta, cont = dvi.FreeEndpoints().residual((theta, ctx.p0 + z[1]), ctx)
     s = w.shape[0]
     scale = 1 + jnp.maximum(jnp.max(jnp.abs(ctx.q0)), jnp.max(jnp.abs(ctx.p0)))
     return r_theta[s:] / scale, r_theta[:s] / scale

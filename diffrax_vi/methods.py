@@ -53,7 +53,7 @@ __all__ = [
     "VISE",
 ]
 
-_SOLVER_OPTIONS = {"root_finder", "root_find_max_steps", "adjoint"}
+_SOLVER_OPTIONS = {"root_finder", "root_find_max_steps", "adjoint", "compensated"}
 # Accepted for compatibility; dense output is the continuous converged curve and nothing
 # prints inside a compiled solve, so these have no effect.
 _NO_EFFECT = {"record_grid_points", "show_status"}

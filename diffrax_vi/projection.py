@@ -13,15 +13,19 @@ for the curve *in that span*, exactly. Because nearly collinear features make th
 numerically smaller than `S`, it is first orthonormalised in the norm the quadrature sees (a
 thin SVD of the weighted data matrix of the features, per coordinate), and only its leading
 `k` directions are kept (`k = min(S, R + 1)` by default: a curve space as large as the one of
-the classical cGVI of degree `R`, which `R` Gauss nodes determine). The unknowns are then `k`
-coefficients per coordinate and `p_{n+1}`: a square system with an isolated root, which plain
-Newton solves to round-off in a few iterations (`RoundoffNewton`).
+the classical cGVI of degree `R`, which `R` Gauss nodes determine). One of them is the
+constant function, exactly (`feature_span`). The unknowns are the curve's change over the
+step in these coordinates, `k` per coordinate, and `p_{n+1} − p_n`: a square system with an
+isolated root, which plain Newton solves to round-off in a few iterations (`RoundoffNewton`),
+and whose increments keep the digits that the state's size would round away (the solver adds
+them by compensated summation).
 
 The output weights follow from the coefficients, so the converged step is a network again
-(dense output, warm starts and the next step's seed read it as one). Measured at converged
-oscillator steps, the hidden-parameter equations of the all-parameter system hold there to
-round-off as well: the projected root is a root of the all-parameter system, along which the
-hidden layer is free. The accuracy of the step is the accuracy of the span.
+(dense output, warm starts and the next step's seed read it as one; the constant direction
+through the features' fit of the constant). Measured at converged oscillator steps, the
+hidden-parameter equations of the all-parameter system hold there to round-off as well: the
+projected root is a root of the all-parameter system, along which the hidden layer is free.
+The accuracy of the step is the accuracy of the span.
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ __all__ = [
     "SeedLayer",
     "UniformLayer",
     "VariableProjection",
+    "feature_span",
 ]
 
 
@@ -70,11 +75,15 @@ def _features(basis: AbstractBasis) -> int:
 
 
 class ProjectedSpan(eqx.Module):
-    """The orthonormalised feature span of one step, per coordinate `d`.
+    """The feature span of one step, per coordinate `d`, in coordinates orthogonal in the
+    quadrature's norm: direction 0 is the constant function exactly (value 1, slope 0), the
+    others are orthonormal and orthogonal to it.
 
-    `gq`, `gv` (`(D, R, k)`): values and τ-slopes of the `k` span directions at the nodes;
-    `g0`, `g1` (`(D, k)`): their values at `τ = 0` and `τ = 1`; `to_alpha` (`(D, S, k)`): the
-    output weights of each direction; `live` (`(k, D)`): directions kept (the others are
+    `gq`, `gv` (`(D, R, k)`): values and τ-slopes of the `k` directions at the nodes; `g0`
+    (`(D, k)`): their values at `τ = 0`, `gd` (`(D, k)`): their changes over the step
+    (the value at `τ = 1` is `g0 + gd`, never rounded into one number, so that the step's
+    equations use the same coefficients everywhere); `to_alpha` (`(D, S, k)`): the output
+    weights of each direction; `live` (`(k, D)`): directions kept (the others are
     numerically absent from the span and pinned to zero); `hidden`: `(w, β)`, each `(S, D)`,
     for a network, `()` for a linear ansatz.
     """
@@ -82,10 +91,80 @@ class ProjectedSpan(eqx.Module):
     gq: Array
     gv: Array
     g0: Array
-    g1: Array
+    gd: Array
     to_alpha: Array
     live: Array
     hidden: tuple[Array, Array] | tuple[()]
+
+    @property
+    def g1(self) -> Array:
+        """The directions' values at `τ = 1` (rounded; the step itself uses `g0` and `gd`)."""
+        return self.g0 + self.gd
+
+
+def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: float,
+                 hidden: tuple[Array, Array] | tuple[()] = ()) -> ProjectedSpan:
+    """The span of features with values `value` and τ-slopes `slope` (`(R + 2, S, D)`, at the
+    `R` nodes of a rule with `weights`, then at `τ = 0` and `τ = 1`): the constant function
+    and the `rank − 1` leading directions of the features with the constant projected out
+    (thin SVD of their data in the quadrature's norm, per coordinate; a direction whose
+    singular value is below `rtol` times the largest of the features is not live).
+
+    The constant is a direction of its own, exactly, so that the curve `q_n + Σ_k δc_k g_k`
+    holds every constant whatever the features' rounding: its increment coordinates `δc`
+    then keep the digits of the step's change that coefficients of size `|q_n|` would round
+    away, and the step is the Galerkin step of a space with the constants (the variation
+    that moves `q_n` is in it, so the map stays symplectic in floating point). Its output
+    weights are the features' least-squares fit of the constant."""
+    n = value.shape[0] - 2
+    dtype = value.dtype
+    work = _work_dtype(dtype)
+    root_b = jnp.sqrt(weights.astype(work))
+    rb = root_b[:, None, None]
+    data = jnp.concatenate([rb * value[:n].astype(work), rb * slope[:n].astype(work),
+                            value[n:].astype(work)])
+    data = jnp.moveaxis(data, 2, 0)  # (D, 2R + 2, S)
+    dim = data.shape[0]
+    one = jnp.concatenate([root_b, jnp.zeros(n, work), jnp.ones(2, work)])  # the constant
+    # The constant's output weights: least squares on the features.
+    u_a, s_a, vt_a = jnp.linalg.svd(data, full_matrices=False)
+    top = s_a[..., :1]
+    keep = s_a > rtol * top
+    inv_a = jnp.where(keep, 1 / jnp.where(keep, s_a, 1), 0)
+    alpha_one = jnp.einsum("dks,dk->ds", vt_a, inv_a * jnp.einsum("dik,i->dk", u_a, one))
+    # The features with the constant projected out, orthonormalised.
+    along = jnp.einsum("i,dis->ds", one, data) / jnp.dot(one, one)  # (D, S)
+    rest = data - one[None, :, None] * along[:, None, :]
+    u, s, vt = jnp.linalg.svd(rest, full_matrices=False)
+    m = rank - 1
+    u, s, v = u[..., :m], s[..., :m], jnp.swapaxes(vt, 1, 2)[..., :m]
+    live = s > rtol * top
+    inv = jnp.where(live, 1 / jnp.where(live, s, 1), 0)
+    # Direction k is `features·w_k − (along·w_k)·1`; the weak ones are orthogonal to the
+    # constant only to eps/s_k, so it is projected out once more (`γ_k` of the constant).
+    gamma = jnp.einsum("i,dik->dk", one, u) / jnp.dot(one, one)
+    u = u - one[None, :, None] * gamma[:, None, :]
+    weights_rest = v * inv[:, None, :]  # (D, S, m)
+    shift = jnp.einsum("ds,dsk->dk", along, weights_rest) + gamma
+    to_alpha = jnp.concatenate(
+        [alpha_one[:, :, None], weights_rest - alpha_one[:, :, None] * shift[:, None, :]],
+        axis=2,
+    )
+    ones = jnp.ones((dim, n, 1), work)
+    span = ProjectedSpan(
+        gq=jnp.concatenate([ones, u[:, :n] / root_b[None, :, None]], axis=2),
+        gv=jnp.concatenate([0 * ones, u[:, n : 2 * n] / root_b[None, :, None]], axis=2),
+        g0=jnp.concatenate([ones[:, 0], u[:, 2 * n]], axis=1),
+        gd=jnp.concatenate([0 * ones[:, 0], u[:, 2 * n + 1] - u[:, 2 * n]], axis=1),
+        to_alpha=to_alpha,
+        live=jnp.concatenate([jnp.ones((dim, 1), bool), live], axis=1).T,
+        hidden=hidden,
+    )
+
+    def cast(a):
+        return a if a.dtype == jnp.bool_ else a.astype(dtype)
+
+    return jax.tree_util.tree_map(cast, span)
 
 
 class AbstractHiddenLayer(eqx.Module):
@@ -252,46 +331,42 @@ class VariableProjection(FreeEndpoints):
             )(taus)
             value = jnp.repeat(value[:, :, None], dim, axis=2)  # (K, P, D)
             slope = jnp.repeat(slope[:, :, None], dim, axis=2)
-        root_b = jnp.sqrt(ctx.weights.astype(dtype))[:, None, None]
-        data = jnp.concatenate([root_b * value[:n], root_b * slope[:n], value[n:]])
-        data = jnp.moveaxis(data, 2, 0)  # (D, 2R + 2, S)
-        work = _work_dtype(dtype)
-        u, s, vt = jnp.linalg.svd(data.astype(work), full_matrices=False)
-        u, s, v = u[..., :k], s[..., :k], jnp.swapaxes(vt, 1, 2)[..., :k]
         rtol = self.rtol if self.rtol is not None else float(jnp.finfo(dtype).eps) ** 0.625
-        live = s > rtol * s[..., :1]
-        inv = jnp.where(live, 1 / jnp.where(live, s, 1), 0)
-        root_b = root_b[:, 0, 0].astype(work)
-        span = ProjectedSpan(
-            gq=u[:, :n] / root_b[None, :, None],
-            gv=u[:, n : 2 * n] / root_b[None, :, None],
-            g0=u[:, 2 * n],
-            g1=u[:, 2 * n + 1],
-            to_alpha=v * inv[:, None, :],
-            live=live.T,
-            hidden=hidden,
-        )
-        def cast(a):
-            return a if a.dtype == jnp.bool_ else a.astype(dtype)
-
-        return jax.lax.stop_gradient(jax.tree_util.tree_map(cast, span))
+        span = feature_span(value, slope, ctx.weights, k, rtol, hidden)
+        return jax.lax.stop_gradient(span)
 
     def reduce(self, curve: Callable[[Array], Array], span: ProjectedSpan, ctx: StepContext
                ) -> Array:
         """Coefficients `(k, D)` of a curve `τ ↦ q(τ)` (e.g. a network with any hidden layer)
-        projected on `span`, by least squares in the quadrature's norm: the Newton start."""
+        on `span`, by least squares in the quadrature's norm (the directions are orthogonal
+        in it, so each coefficient is one inner product)."""
         dtype = ctx.q0.dtype
         b = ctx.weights.astype(dtype)
         q, dq = stage_values(curve, ctx.nodes.astype(dtype))
         ends = jax.vmap(curve)(jnp.array([0.0, 1.0], dtype))
-        # The span's data columns are orthonormal, so projecting is one product with them.
-        c = (
-            jnp.einsum("j,djk,jd->kd", b, span.gq, q)
-            + jnp.einsum("j,djk,jd->kd", b, span.gv, dq)
-            + span.g0.T * ends[0]
-            + span.g1.T * ends[1]
-        )
+        g1 = span.g1
+
+        def inner(q, dq, e0, e1):
+            return (jnp.einsum("j,djk,jd->kd", b, span.gq, q)
+                    + jnp.einsum("j,djk,jd->kd", b, span.gv, dq)
+                    + span.g0.T * e0 + g1.T * e1)
+
+        norms = (jnp.einsum("j,djk->kd", b, span.gq**2) + jnp.einsum("j,djk->kd", b, span.gv**2)
+                 + span.g0.T**2 + g1.T**2)
+        c = inner(q, dq, ends[0], ends[1]) / jnp.where(span.live, norms, 1)
         return jnp.where(span.live, c, 0)
+
+    def start(self, curve: Callable[[Array], Array], p1: Array, span: ProjectedSpan,
+              ctx: StepContext) -> tuple[Array, Array]:
+        """The unknowns `z = (δc, p_{n+1} − p_n)` of the curve `curve` and the end momentum
+        `p1`: the Newton start."""
+        dc = self.reduce(lambda tau: curve(tau) - ctx.q0, span, ctx)
+        return dc, (p1 - ctx.p0).astype(ctx.p0.dtype)
+
+    def coefficients(self, dc: Array, ctx: StepContext) -> Array:
+        """The span coordinates `(k, D)` of the curve `q_n + Σ_k δc_k g_k` (the constant
+        direction 0 takes `q_n`)."""
+        return dc.at[0].add(ctx.q0)
 
     def expand(self, c: Array, span: ProjectedSpan) -> Array:
         """The parameters whose curve is `Σ_k c_kd (direction k)`: the network's `(α, w, β)`,
@@ -302,37 +377,46 @@ class VariableProjection(FreeEndpoints):
         w, beta = span.hidden
         return ShallowNetBasis.join(alpha, w, beta)
 
+    @staticmethod
+    def node_values(dc: Array, span: ProjectedSpan, q0: Array) -> tuple[Array, Array]:
+        """Values and τ-slopes `(R, D)` at the nodes of the curve `q_n + Σ_k δc_k g_k`."""
+        q = q0 + jnp.einsum("djk,kd->jd", span.gq, dc)
+        dq = jnp.einsum("djk,kd->jd", span.gv, dc)
+        return q, dq
+
     def reduced_residual(self, z, args) -> tuple[Array, Array]:
-        """Free-endpoint equations in the span coordinates `z = (c, p_{n+1})`: the action's
-        stationarity along each live direction (`(k, D)`; pinned directions: `c = 0`) and
-        continuity `q_h(0) = q_n`."""
+        """Free-endpoint equations in the span's increment coordinates
+        `z = (δc, Δp = p_{n+1} − p_n)`: the action's stationarity along each live direction
+        (`(k, D)`; pinned directions: `δc = 0`) and continuity `q_h(0) = q_n`. Along the
+        constant direction the equation is `Δp = h Σ_j b_j f_j`, so `Δp` is solved to the
+        rounding of its own size."""
         ctx, span = args[0], args[1]
-        c, p1 = z
-        q = jnp.einsum("djk,kd->jd", span.gq, c)
-        dq = jnp.einsum("djk,kd->jd", span.gv, c)
+        dc, dp = z
+        q, dq = self.node_values(dc, span, ctx.q0)
         p, f = node_momenta_and_forces(ctx, q, dq)
-        b = ctx.weights.astype(c.dtype)
+        b = ctx.weights.astype(dc.dtype)
+        # p_{n+1} g1 − p_n g0 with g1 = g0 + gd, p_{n+1} = p_n + Δp, term by term
         r = (
-            p1 * span.g1.T
-            - ctx.p0 * span.g0.T
+            dp * span.g0.T
+            + dp * span.gd.T
+            + ctx.p0 * span.gd.T
             - jnp.einsum("j,jd,djk->kd", ctx.h * b, f, span.gq)
             - jnp.einsum("j,jd,djk->kd", b, p, span.gv)
         )
-        r = jnp.where(span.live, r, c)
-        return r, ctx.q0 - jnp.einsum("dk,kd->d", span.g0, c)
+        r = jnp.where(span.live, r, dc)
+        return r, -jnp.einsum("dk,kd->d", span.g0, dc)
 
     def reduced_jacobian(self, z, args) -> Array:
         """The Jacobian of `reduced_residual`, dense, in the order of `ravel_pytree`: the
-        curve is linear in `c`, so it needs only the Lagrangian's second derivatives at the
+        curve is linear in `δc`, so it needs only the Lagrangian's second derivatives at the
         nodes (one `jax.jacfwd` of `(ϑ, f)` per node)."""
         ctx, span = args[0], args[1]
-        c, _ = z
-        dtype = c.dtype
-        k, dim = c.shape
+        dc, _ = z
+        dtype = dc.dtype
+        k, dim = dc.shape
         h = ctx.h
         b = ctx.weights.astype(dtype)
-        q = jnp.einsum("djk,kd->jd", span.gq, c)
-        dq = jnp.einsum("djk,kd->jd", span.gv, c)
+        q, dq = self.node_values(dc, span, ctx.q0)
         ts = ctx.t + ctx.nodes * h
 
         def mf(t, qj, vj):
@@ -370,17 +454,22 @@ class VariableProjection(FreeEndpoints):
         exact = jax.lax.stop_gradient(jnp.where(tau == 0, q0, jnp.where(tau == 1, q1, q)))
         return exact + (q - jax.lax.stop_gradient(q))
 
-    def projected_end_state(
-        self, z, span: ProjectedSpan, ctx: StepContext | None = None
-    ) -> tuple[Array, Array]:
-        """`(q_{n+1}, p_{n+1})` from the span coordinates (`q_h(1)` from the orthonormal
-        directions, without the cancellation of large output weights). Given the step's
-        `ctx`, a Lagrangian linear in the velocities also gets `q_{n+1}` moved onto its
-        primary constraint `ϑ(q_{n+1}) = p_{n+1}` (`first_order_end_correction`)."""
-        c, p1 = z
-        q1 = jnp.einsum("dk,kd->d", span.g1, c)
-        if ctx is None:
-            return q1, p1
+    def projected_increments(self, z, span: ProjectedSpan, ctx: StepContext
+                             ) -> tuple[Array, Array]:
+        """`(q_h(1) − q_n, p_{n+1} − p_n)` of the solution `z`, each to the rounding of its
+        own size (not of `|q_n|` or `|p_n|`)."""
+        dc, dp = z
+        dq = jnp.einsum("dk,kd->d", span.gd, dc).astype(ctx.q0.dtype)
+        return dq, dp.astype(ctx.p0.dtype)
+
+    def projected_end_state(self, z, span: ProjectedSpan, ctx: StepContext
+                            ) -> tuple[Array, Array]:
+        """`(q_{n+1}, p_{n+1})` of the solution `z`: the step's start plus its increments,
+        summed without compensation; a Lagrangian linear in the velocities also gets
+        `q_{n+1}` moved onto its primary constraint `ϑ(q_{n+1}) = p_{n+1}`
+        (`first_order_end_correction`)."""
+        dq, dp = self.projected_increments(z, span, ctx)
+        q1, p1 = ctx.q0 + dq, ctx.p0 + dp
         return q1 + first_order_end_correction(ctx, q1, p1), p1
 
 

@@ -19,7 +19,12 @@ from jaxtyping import Array, PyTree
 from .ansatz.base import AbstractBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
-from .degenerate import CONSTRAINT_GROWTH, CONSTRAINT_TOLERANCE, primary_constraint_violation
+from .degenerate import (
+    CONSTRAINT_GROWTH,
+    CONSTRAINT_TOLERANCE,
+    first_order_end_correction,
+    primary_constraint_violation,
+)
 from .formulation import (
     AbstractFormulation,
     FreeEndpoints,
@@ -75,6 +80,9 @@ class NetworkVIState(eqx.Module):
       steps this is the failed step; `diffrax_vi.describe_failure(sol)` prints it.
     - `first_constraint`: `report.constraint` of the run's first step (NaN before it), the
       scale against which the constraint monitor measures growth.
+    - `compensation`: `(e_q, e_p)`, the rounding left over from adding the last step's
+      increments to `q` and `p` (compensated summation, `NetworkVI.compensated`): the
+      state is `y + compensation` to about twice the working precision. Zeros when off.
     """
 
     seed: SeedRecord
@@ -89,6 +97,7 @@ class NetworkVIState(eqx.Module):
     iteration_log: Array
     report: StepReport
     first_constraint: Array
+    compensation: tuple[Array, Array]
 
     @property
     def theta(self) -> PyTree:
@@ -219,6 +228,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       failed step reports an infinite error, so the controller rejects it and retries with a
       smaller step. Varying steps break the symplectic, energy-bounding behaviour of a
       variational integrator: use them for transients, fixed steps for long runs.
+    - `compensated`: with the projected step, add each step's increments `Δq`, `Δp` to the
+      state by compensated (Kahan–Babuška) summation, carrying the rounding of each sum in
+      the solver state into the next step (`NetworkVIState.compensation`). The projected
+      step computes its increments to the rounding of their own size, so the state no
+      longer loses `eps·|y|` per step to the sum: the energy error of a long run grows more
+      slowly. Default `True`. (The all-parameter formulations solve for `q_{n+1}` itself;
+      there it has no effect.)
     """
 
     basis: AbstractBasis
@@ -240,6 +256,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     formulation: AbstractFormulation | None = None
     error_estimate: int | None = eqx.field(static=True, default=None)
     iteration_log: int = eqx.field(static=True, default=0)
+    compensated: bool = eqx.field(static=True, default=True)
 
     term_structure: ClassVar = AbstractMechanicalTerm
 
@@ -270,6 +287,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
                 f"NoExtrapolation() or PreviousStep(); got {self.initial_trajectory!r}"
             )
+        if not isinstance(self.compensated, bool):
+            raise TypeError(f"compensated must be True or False, got {self.compensated!r}")
         need = self.basis.min_nodes()
         if self.quadrature.num_nodes < need:
             raise ValueError(
@@ -494,6 +513,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 constraint=jnp.zeros((), ctx.q0.dtype),
             ),
             first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
+            compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -516,18 +536,38 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
         if isinstance(self.formulation, VariableProjection):
-            theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_projected(
-                ctx, *seed.start, restart_history=seed.restart_history
+            theta, increments, n, result, residual, tolerance, restarted = (
+                self._solve_projected(ctx, *seed.start, restart_history=seed.restart_history)
             )
+            (q1, p1), compensation = self._add_increments(ctx, increments, state.compensation)
+            # A first-order Lagrangian's end state is moved onto its primary constraint
+            # (zero change for any other); a moved coordinate carries no compensation.
+            moved = q1 + first_order_end_correction(ctx, q1, p1)
+            compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
+            q1 = moved
         else:
             theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_all(
                 ctx, seed
             )
+            compensation = state.compensation
         q1 = q1.astype(ctx.q0.dtype)
         p1 = p1.astype(ctx.p0.dtype)
         return self._finish_step(
-            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted
+            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
+            compensation,
         )
+
+    def _add_increments(self, ctx: StepContext, increments, compensation):
+        """`(q_n + Δq, p_n + Δp)`, by compensated summation when `compensated`: the rounding
+        carried from the last step is added to the increment, and the rounding of this sum
+        is carried to the next (`two_sum`, exact in any binary floating-point format)."""
+        dq, dp = (d.astype(x.dtype) for d, x in zip(increments, (ctx.q0, ctx.p0), strict=True))
+        if not self.compensated:
+            return (ctx.q0 + dq, ctx.p0 + dp), compensation
+        eq, ep = compensation
+        q1, eq = two_sum(ctx.q0, dq + eq)
+        p1, ep = two_sum(ctx.p0, dp + ep)
+        return (q1, p1), (eq, ep)
 
     def _solve_projected(self, ctx: StepContext, hidden, curve, p1_start, restart_history=None):
         """The step's equations on the feature span of the hidden layer of the parameters
@@ -540,7 +580,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         projected on the span; the iteration cap covers both tries."""
         form = self.formulation
         span = form.span(hidden, ctx)
-        z0 = jax.lax.stop_gradient((form.reduce(curve, span, ctx), p1_start))
+        z0 = jax.lax.stop_gradient(form.start(curve, p1_start, span, ctx))
         cap = self.root_find_max_steps
         restart = None
         if restart_history is not None and cap > _FIRST_TRY:
@@ -556,14 +596,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         sol = self._projected_root(ctx, span, z0, cap, restart, restart_history)
         z, f, n, result = sol.value, sol.state.f, sol.stats["num_steps"], sol.result
         restarted = jnp.asarray(getattr(sol.state, "restarted", False))
-        theta = form.expand(z[0], span)
-        q1, p1 = form.projected_end_state(z, span, ctx)
+        theta = form.expand(form.coefficients(z[0], ctx), span)
+        increments = form.projected_increments(z, span, ctx)
         scale = _residual_scale(ctx)
         residual = jax.lax.stop_gradient(jnp.max(jnp.abs(f)).astype(ctx.q0.dtype))
         eps = float(jnp.finfo(ctx.q0.dtype).eps)
         tolerance = (self.root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
         n = jnp.asarray(n, jnp.int32)
-        return theta, (q1, p1), n, from_root_find(result), residual, tolerance, restarted
+        return theta, increments, n, from_root_find(result), residual, tolerance, restarted
 
     def _projected_root(self, ctx: StepContext, span, z0, max_steps: int, restart=None,
                         history=None):
@@ -613,7 +653,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
 
     def _finish_step(
-        self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted
+        self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
+        compensation,
     ):
         """Failure results, dense output, the new solver state (the seed policy's record
         accepts the step)."""
@@ -697,6 +738,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 constraint=constraint,
             ),
             first_constraint=first,
+            compensation=jax.tree_util.tree_map(
+                lambda e: jnp.where(failed, jnp.zeros_like(e), e), compensation
+            ),
         )
         y_error = None
         if self.error_estimate is not None:
@@ -786,6 +830,15 @@ def _jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepCon
     ):
         return formulation.jacobian
     return None
+
+
+def two_sum(a: Array, b: Array) -> tuple[Array, Array]:
+    """`(s, e)` with `s = fl(a + b)` and `a + b = s + e` exactly (Knuth's TwoSum: no
+    condition on the sizes of `a` and `b`)."""
+    s = a + b
+    b_part = s - a
+    a_part = s - b_part
+    return s, (a - a_part) + (b - b_part)
 
 
 def _check_state(y0: Any) -> tuple[Array, Array]:

@@ -147,23 +147,54 @@ def test_span_is_orthonormal_in_the_quadrature_norm():
     solver = projected(dvi.tanh, 10, 16)
     ctx, theta = _context(problem, solver)
     span = solver.formulation.span(theta, ctx)
+    # Direction 0 is the constant function, exactly: value 1, slope 0, no change over the step.
+    assert bool(jnp.all(span.gq[:, :, 0] == 1)) and bool(jnp.all(span.gv[:, :, 0] == 0))
+    assert bool(jnp.all(span.g0[:, 0] == 1)) and bool(jnp.all(span.gd[:, 0] == 0))
     root_b = jnp.sqrt(ctx.weights)[None, :, None]
     data = jnp.concatenate(
         [root_b * span.gq, root_b * span.gv, span.g0[:, None], span.g1[:, None]], axis=1
     )
     gram = jnp.einsum("dik,dil->dkl", data, data)
     live = span.live.T  # (D, k)
-    expected = jnp.where(live[:, :, None] & live[:, None, :], jnp.eye(gram.shape[-1]), 0)
-    np.testing.assert_allclose(gram * expected, expected, atol=1e-12)
+    # orthogonal; the others orthonormal, the constant of norm² Σ b + 2 = 3
+    norms = jnp.ones(gram.shape[-1]).at[0].set(3.0)
+    expected = jnp.where(live[:, :, None] & live[:, None, :], jnp.diag(norms), 0)
+    mask = live[:, :, None] & live[:, None, :]
+    np.testing.assert_allclose(jnp.where(mask, gram, 0), expected, atol=1e-12)
     # The expansion reproduces the span directions through the network's own features, up
-    # to the rounding of a direction's output weights: eps / s_k of it, with s_k / s_1 down
-    # to the rank threshold eps^(5/8).
+    # to the rounding of a direction's output weights (eps / s_k of it, with s_k / s_1 down
+    # to the rank threshold eps^(5/8)) and to how well the features fit the constant
+    # (direction 0, exact in the span; each direction is made orthogonal to it).
+    taus = jnp.concatenate([ctx.nodes, jnp.array([0.0, 1.0])])
+    def curve_of(c):
+        theta_c = solver.formulation.expand(c, span)
+        return jax.vmap(solver.basis.evaluate, in_axes=(None, 0))(theta_c, taus)
+
+    one = jnp.zeros_like(span.g0.T).at[0].set(1.0)
+    misfit = jnp.max(jnp.abs(curve_of(one) - 1), axis=0)  # (D,)
     c = jnp.where(span.live, 1.0, 0.0)
-    theta_c = solver.formulation.expand(c, span)
-    q_nodes = jax.vmap(solver.basis.evaluate, in_axes=(None, 0))(theta_c, ctx.nodes)
+    expected = jnp.concatenate([jnp.einsum("djk,kd->jd", span.gq, c), (span.g0.T * c).sum(0)[None],
+                                (span.g1.T * c).sum(0)[None]])
+    shift = jnp.abs(span.to_alpha[:, :, 1:]).sum(1).max(1) / jnp.abs(span.to_alpha[:, :, 0]).max(1)
     eps = float(jnp.finfo(jnp.float64).eps)
-    bound = 10 * eps / eps**0.625
-    np.testing.assert_allclose(q_nodes, jnp.einsum("djk,kd->jd", span.gq, c), atol=bound)
+    bound = 10 * eps / eps**0.625 + misfit * (1 + shift)
+    assert bool(jnp.all(jnp.abs(curve_of(c) - expected) <= bound))
+
+
+def test_uniform_layer_features_hold_the_constant():
+    # The default hidden layers fit the constant direction to 1e-10: the network that
+    # the step hands to dense output is the solved curve to that, relative to |q|.
+    problem = problems.double_pendulum()
+    for activation, width in ((dvi.tanh, 10), (dvi.sigmoid, 10), (dvi.gelu, 8)):
+        solver = dvi.NetworkVI(dvi.ShallowNetBasis(activation, width), dvi.GaussLegendre(8))
+        ctx = solver._context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+        theta = dvi.UniformLayer().parameters(solver.basis, 2, jnp.float64)
+        span = solver.formulation.span(theta, ctx)
+        one = jnp.zeros_like(span.g0.T).at[0].set(1.0)
+        values = jax.vmap(solver.basis.evaluate, in_axes=(None, 0))(
+            solver.formulation.expand(one, span), jnp.linspace(0.0, 1.0, 51)
+        )
+        assert float(jnp.max(jnp.abs(values - 1))) <= 1e-10, activation
 
 
 def test_vmap_matches_loop_on_the_oscillator():

@@ -339,7 +339,7 @@ class SeedPolicy(eqx.Module):
         def seed_curve(tau):
             return jax.vmap(lambda y: jnp.interp(tau, grid, y), in_axes=1)(labels)
 
-        z = (self.formulation.reduce(seed_curve, span, ctx), p_end.astype(ctx.p0.dtype))
+        z = self.formulation.start(seed_curve, p_end.astype(ctx.p0.dtype), span, ctx)
         return jax.lax.stop_gradient(z)
 
 

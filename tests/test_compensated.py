@@ -1,0 +1,96 @@
+"""Compensated summation of the state (issue 28): increments to their own rounding, exact
+TwoSum, and what it buys on long runs with small steps."""
+
+from fractions import Fraction
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffrax_vi as dvi
+from diffrax_vi import problems
+from diffrax_vi.solver import two_sum
+
+
+def test_two_sum_is_exact():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=2000) * 10.0 ** rng.integers(-20, 20, size=2000)
+    b = rng.normal(size=2000) * 10.0 ** rng.integers(-20, 20, size=2000)
+    s, e = jax.jit(two_sum)(jnp.asarray(a), jnp.asarray(b))
+    for x, y, sx, ex in zip(a, b, np.asarray(s), np.asarray(e), strict=True):
+        assert Fraction(float(x)) + Fraction(float(y)) == Fraction(float(sx)) + Fraction(float(ex))
+        assert sx == x + y
+
+
+def _energy_error(problem, solver, h, steps, dtype=jnp.float64):
+    y0 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), problem.y0)
+    ts = jnp.asarray(np.linspace(0.0, steps * h, 201), dtype)
+
+    @jax.jit
+    def solve(ts):
+        return diffrax.diffeqsolve(
+            problem.term, solver, ts[0], ts[-1], jnp.asarray(h, dtype), y0, args=problem.args,
+            saveat=diffrax.SaveAt(ts=ts, solver_state=True), max_steps=steps + 10,
+        )
+
+    sol = solve(ts)
+    assert sol.result == diffrax.RESULTS.successful
+    energy = jax.vmap(lambda q, p: problem.energy(0.0, q, p))
+    e = np.asarray(energy(*jax.tree_util.tree_map(lambda a: a.astype(jnp.float64), sol.ys)))
+    e0 = float(problem.energy(0.0, *problem.y0))
+    return np.max(np.abs(e - e0) / abs(e0)), sol
+
+
+def test_compensation_keeps_small_steps_at_round_off():
+    # Small steps: the increments are far below the state, so plain sums lose eps·|y| per
+    # step and the compensated ones do not (oscillator, h = 0.05, 4·10^4 steps).
+    problem = problems.harmonic_oscillator()
+    plain, _ = _energy_error(problem, dvi.CGVI(6, compensated=False), 0.05, 40_000)
+    compensated, sol = _energy_error(problem, dvi.CGVI(6), 0.05, 40_000)
+    assert compensated <= 5e-15
+    assert compensated <= plain / 4
+    # what is carried is the rounding of the last sums: at most half an ulp of the state
+    q, p = (a[-1] for a in sol.ys)
+    eq, ep = (a[-1] for a in sol.solver_state.compensation)
+    assert bool(jnp.all(jnp.abs(eq) <= jnp.spacing(jnp.abs(q)) / 2))
+    assert bool(jnp.all(jnp.abs(ep) <= jnp.spacing(jnp.abs(p)) / 2))
+    assert bool(jnp.any(eq != 0) | jnp.any(ep != 0))
+
+
+@pytest.mark.parametrize("dtype, bound", [(jnp.float32, 2e-6)])
+def test_float32_stays_float32_with_compensation(dtype, bound):
+    problem = problems.harmonic_oscillator()
+    plain, _ = _energy_error(problem, dvi.CGVI(4, compensated=False), 0.05, 20_000, dtype)
+    compensated, sol = _energy_error(problem, dvi.CGVI(4), 0.05, 20_000, dtype)
+    assert sol.ys[0].dtype == dtype and sol.ys[1].dtype == dtype
+    assert all(a.dtype == dtype for a in sol.solver_state.compensation)
+    assert compensated <= bound
+    assert compensated <= plain / 4
+
+
+def test_uncompensated_carries_nothing():
+    problem = problems.harmonic_oscillator()
+    _, sol = _energy_error(problem, dvi.CGVI(4, compensated=False), 0.1, 100)
+    assert all(bool(jnp.all(a == 0)) for a in sol.solver_state.compensation)
+
+
+def test_constant_step_times_are_not_accumulated():
+    # diffrax's ConstantStepSize places step n at t0 + (t1 - t0)·n/N, so the times carry no
+    # summed rounding: the solver needs no compensation of t.
+    h = 2 * np.pi / 100
+    steps = 20_000
+    sol = diffrax.diffeqsolve(
+        dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 0.5 * q @ q), dvi.CGVI(2),
+        0.0, steps * h, h, (jnp.array([0.5]), jnp.array([0.0])),
+        saveat=diffrax.SaveAt(steps=True), max_steps=steps,
+    )
+    ts = np.asarray(sol.ts)
+    exact = [float(Fraction(steps * h) * k / steps) for k in range(1, steps + 1)]
+    assert np.max(np.abs(ts - exact) / np.spacing(np.abs(exact))) <= 1
+
+
+def test_compensated_must_be_a_bool():
+    with pytest.raises(TypeError, match="compensated"):
+        dvi.CGVI(3, compensated="yes")
