@@ -7,6 +7,7 @@ from . import oga, problems
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
 from .ansatz import AbstractBasis, DenseNetBasis, LagrangeBasis, ShallowNetBasis
 from .ensemble import ensemble, ensemble_mesh
+from .fixed_point import FixedPointIteration
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .interpolation import NetworkInterpolation
 from .methods import (
@@ -106,6 +107,7 @@ __all__ = [
     "FreeEndpoints",
     "VariableProjection",
     "RoundoffNewton",
+    "FixedPointIteration",
     "UniformLayer",
     "FirstSeedLayer",
     "SeedLayer",

@@ -359,7 +359,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             if not isinstance(self.root_finder, RoundoffNewton):
                 raise ValueError(
                     "VariableProjection() solves a square system with an isolated root: use "
-                    f"root_finder=RoundoffNewton() (the default), got {self.root_finder!r}"
+                    "root_finder=RoundoffNewton() (the default) or FixedPointIteration(), got "
+                    f"{self.root_finder!r}"
                 )
         if (
             isinstance(self.root_finder, AbstractDampedNewton)

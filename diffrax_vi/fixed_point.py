@@ -1,0 +1,243 @@
+"""A chord (simplified Newton) iteration for the projected step of non-stiff problems.
+
+`RoundoffNewton` forms and factorises a fresh Jacobian on every iteration. When the start is
+already close to the root (the previous step's curve continued, on a non-stiff problem), the
+Jacobian hardly changes during a solve, and the fixed-point iteration
+
+    z ← z − J₀⁻¹ F(z),    J₀ the Jacobian at the start of the solve,
+
+converges linearly with a small contraction factor: each iteration costs one residual and a
+product with `J₀⁻¹` instead of a Jacobian, an LU factorisation and a line search.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array
+
+from .lazy import unless_all_skip
+from .linalg import _work_dtype
+from .projection import RoundoffNewton
+
+__all__ = ["FixedPointIteration"]
+
+
+class _ChordState(eqx.Module):
+    f: Array
+    step_norm: Array
+    converged: Array
+    at_floor: Array
+    stalls: Array
+    iterations: Array
+    restarted: Array
+    factors: tuple[Array, ...]
+    contraction: Array
+    refreshes: Array
+    fresh: Array
+
+
+def _factor(jac: Array, dtype, inverse: bool) -> tuple[Array, ...]:
+    """`(J⁻¹,)` or the LU factors `(lu, pivots)` of `jac`, in the working precision (float32
+    below 32 bits)."""
+    lu = jax.scipy.linalg.lu_factor(jac.astype(_work_dtype(dtype)))
+    if not inverse:
+        return lu
+    eye = jnp.eye(jac.shape[0], dtype=lu[0].dtype)
+    return (jax.scipy.linalg.lu_solve(lu, eye),)
+
+
+def _apply(factors: tuple[Array, ...], f: Array) -> Array:
+    """`J⁻¹ f` from `_factor`'s output, in the dtype of `f`."""
+    work = factors[0].dtype
+    if len(factors) == 1:
+        out = factors[0] @ f.astype(work)
+    else:
+        out = jax.scipy.linalg.lu_solve(factors, f.astype(work))
+    return out.astype(f.dtype)
+
+
+class FixedPointIteration(RoundoffNewton):
+    """The chord iteration `z ← z − J₀⁻¹ F(z)` for a square system, run to round-off.
+
+    The Jacobian (`options["jacobian"]` where the caller gives one, else `jax.jacfwd`) is
+    formed and LU-factorised once, at the start of the solve; every iteration then costs one
+    residual and one application of the factors. It converges linearly, at a rate that is
+    small when
+    the start is close to the root and the Jacobian varies little along the way: a non-stiff
+    problem solved from the previous step's curve. A drop-in for `RoundoffNewton` wherever
+    the solver accepts one (`CGVI`, the projected `NetworkVI` step).
+
+    Stopping rules are those of `RoundoffNewton`: converged at `max|F| ≤ ftol · eps · scale`,
+    or at round-off once `max|F| ≤ floor · eps · scale` and the update has stopped shrinking
+    (`ftol=0` runs every solve there). Every solve makes at least one update. There is no line
+    search: each update is taken. An iteration far from the root (above `floor`) whose
+    residual does not fall, or whose update is no smaller than the one before, is a stall;
+    `max_stalls` stalls in a row end the solve as `nonlinear_divergence`, a non-finite
+    residual as `nonfinite`, so an iteration that cannot contract (a stiff problem, a long
+    step) fails loudly and the step is rejected rather than accepted wrong.
+
+    `options["restart"] = (first_try, start)` has the meaning it has for `RoundoffNewton`;
+    the Jacobian is formed and factorised afresh at the restart point.
+
+    **Arguments:**
+
+    - `ftol`, `floor`, `max_stalls`: as for `RoundoffNewton` (defaults 64, 4096, 3).
+    - `refresh`: `None` (default) keeps the start's Jacobian for the whole solve. A number
+      `ρ` in `(0, 1)` forms and factorises the Jacobian again at the current point whenever,
+      far from the root, the update shrank by less than `ρ` (the estimated contraction
+      factor `‖Δz_k‖ / ‖Δz_{k−1}‖ > ρ`), or stalled (then the update is undone first). An
+      update from a Jacobian formed where it starts is Newton's, with `RoundoffNewton`'s
+      backtracking far from the root: on a harder problem the iteration turns into Newton's
+      method instead of failing.
+    - `inverse`: apply the factors as the explicit inverse `J₀⁻¹` (default `True`: one small
+      matrix-vector product per iteration, where a pair of triangular solves costs more than
+      the residual at the sizes of a step) or by triangular solves (`False`). The fixed point
+      is the root either way; only the contraction factor sees the inverse's rounding.
+    - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
+    - `rtol`, `atol`, `norm`: unused (inherited).
+
+    The root finder's final state holds `contraction` (the last contraction estimate) and
+    `refreshes` (the Jacobians formed after the first).
+    """
+
+    refresh: float | None = eqx.field(static=True, default=None)
+    inverse: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        if not isinstance(self.inverse, bool):
+            raise TypeError(f"inverse must be True or False, got {self.inverse!r}")
+        if self.refresh is not None and not (
+            isinstance(self.refresh, int | float) and not isinstance(self.refresh, bool)
+            and 0 < self.refresh < 1
+        ):
+            raise ValueError(f"refresh must be None or a number in (0, 1), got {self.refresh!r}")
+
+    def _jacobian(self, fn, y, args, options):
+        given = options.get("jacobian")
+        if given is not None:
+            return given(y, args)
+        flat, unravel = ravel_pytree(y)
+        return jax.jacfwd(lambda v: ravel_pytree(fn(unravel(v), args)[0])[0])(flat)
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del aux_struct, tags, f_struct
+        f, _ = fn(y, args)
+        flat = ravel_pytree(f)[0]
+        dtype = ravel_pytree(y)[0].dtype
+        factors = _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
+        inf = jnp.full((), jnp.inf, flat.dtype)
+        zero = jnp.array(0, jnp.int32)
+        no = jnp.array(False)
+        return _ChordState(flat, inf, no, no, zero, zero, no, factors,
+                           jnp.zeros((), flat.dtype), zero, jnp.array(True))
+
+    def step(self, fn, y, args, options, state, tags):
+        del tags
+        flat_y, unravel = ravel_pytree(y)
+        dtype = flat_y.dtype
+        scale = jnp.asarray(options.get("scale", 1.0), dtype)
+        floor = self._tolerance("floor", dtype) * scale
+
+        def residual(v):
+            out, aux = fn(unravel(v), args)
+            return ravel_pytree(out)[0], aux
+
+        d = -_apply(state.factors, state.f)
+        fmax = jnp.max(jnp.abs(state.f))
+        near = fmax <= floor
+        f_new, aux = residual(flat_y + d)
+
+        def enough(f_try, a):
+            return jnp.max(jnp.abs(f_try)) <= (1 - 1e-4 * a) * fmax
+
+        a = jnp.ones((), dtype)
+        if self.refresh is not None:
+            # A step with a Jacobian formed where it starts is Newton's: far from the root it
+            # backtracks as `RoundoffNewton` does.
+            def cond(carry):
+                a, f_try, _, k = carry
+                return state.fresh & ~near & ~enough(f_try, a) & (k < self.max_backtracks)
+
+            def body(carry):
+                a, _, _, k = carry
+                a = a / 2
+                f_try, aux = residual(flat_y + a * d)
+                return a, f_try, aux, k + 1
+
+            a, f_new, aux, _ = jax.lax.while_loop(cond, body, (a, f_new, aux, 0))
+        new = flat_y + a * d
+        fmax_new = jnp.max(jnp.abs(f_new))
+        norm = jnp.max(jnp.abs(a * d))
+        iterations = state.iterations + 1
+        known = jnp.isfinite(state.step_norm) & (state.step_norm > 0)
+        contraction = jnp.where(known, norm / jnp.where(known, state.step_norm, 1), 0)
+        # Far from the root a contracting iteration lowers the residual and shrinks its
+        # update (a Newton step of the refreshing variant need only lower the residual);
+        # `max_stalls` stalls in a row end the solve.
+        shrank = norm < state.step_norm
+        if self.refresh is not None:
+            shrank = shrank | state.fresh
+        stalled = ~near & ~(enough(f_new, a) & shrank)
+        stalls = jnp.where(stalled, state.stalls + 1, 0)
+        step_norm = norm
+        factors, refreshes, fresh = state.factors, state.refreshes, jnp.array(False)
+        need = None
+        if self.refresh is not None:
+            # A stalled chord update is undone and Newton's step taken from where the
+            # iteration stood; a slow one is kept, and the next starts from a fresh Jacobian.
+            chord_stall = stalled & ~state.fresh
+            slow = ~near & ~stalled & (contraction > self.refresh)
+            undo = stalled
+            new = jnp.where(undo, flat_y, new)
+            f_new = jnp.where(undo, state.f, f_new)
+            fmax_new = jnp.max(jnp.abs(f_new))
+            step_norm = jnp.where(undo, state.step_norm, norm)
+            stalls = jnp.where(chord_stall, state.stalls, stalls)
+            need = chord_stall | slow
+            fresh = state.fresh & undo
+        converged = fmax_new <= self._tolerance("ftol", dtype) * scale
+        # Rounding has taken over once an update near the root is no smaller than the one
+        # before it.
+        at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)
+        restarted = state.restarted
+        restart = options.get("restart")
+        give_up = None
+        if restart is not None:
+            first_try, start = restart
+            give_up = ~restarted & ~(converged | at_floor) & (
+                (iterations >= first_try) | (stalls >= self.max_stalls)
+                | ~jnp.isfinite(fmax_new)
+            )
+            step_norm = jnp.where(give_up, jnp.full((), jnp.inf, dtype), step_norm)
+            stalls = jnp.where(give_up, 0, stalls)
+            converged = converged & ~give_up
+            at_floor = at_floor & ~give_up
+            restarted = restarted | give_up
+            need = give_up if need is None else need | give_up
+        if need is not None:
+            # One lazy branch for a restart and a refresh alike (each iteration pays for the
+            # branch's test only): the restart point where one is due, then the Jacobian at
+            # the iteration's new point and its factors.
+            need = need & ~(converged | at_floor)
+            current = (new, f_new)
+
+            def fresh_start():
+                y_r = ravel_pytree(start(args))[0].astype(dtype)
+                return y_r, residual(y_r)[0]
+
+            def refactor():
+                point, f_point = current
+                if give_up is not None:
+                    point, f_point = unless_all_skip(give_up, fresh_start, current)
+                jac = self._jacobian(fn, unravel(point), args, options)
+                return point, f_point, _factor(jac, dtype, self.inverse)
+
+            new, f_new, factors = unless_all_skip(need, refactor, (new, f_new, factors))
+            refreshes = refreshes + need.astype(jnp.int32)
+            fresh = fresh | need
+        state = _ChordState(f_new, step_norm, converged, at_floor, stalls, iterations,
+                            restarted, factors, contraction, refreshes, fresh)
+        return unravel(new), state, aux

@@ -1,0 +1,265 @@
+"""FixedPointIteration: the chord iteration for the projected step, beside RoundoffNewton."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import diffrax_vi as dvi
+from diffrax_vi import problems
+from diffrax_vi.fixed_point import FixedPointIteration
+
+jax.config.update("jax_enable_x64", True)
+
+SHORT = {
+    "harmonic_oscillator": (problems.harmonic_oscillator, {}, 0.5, 20),
+    "kepler": (problems.kepler, dict(eccentricity=0.5), 2 * np.pi / 100, 50),
+    "double_pendulum": (problems.double_pendulum, {}, 0.05, 20),
+}
+
+
+def network(root_finder):
+    """The default NetworkVI step (tanh 10, GL8: the projected one) with `root_finder`."""
+    return dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
+                         root_finder=root_finder)
+
+
+def family(name):
+    return (lambda rf: dvi.CGVI(6, root_finder=rf)) if name == "cgvi" else network
+
+
+def run(problem, solver, h, n, y0=None):
+    ts = jnp.asarray(h * np.arange(1, n + 1))
+
+    @eqx.filter_jit
+    def go(y):
+        return diffrax.diffeqsolve(
+            problem.term, solver, 0.0, n * h, h, y, args=problem.args, max_steps=n,
+            saveat=diffrax.SaveAt(ts=ts, solver_state=True), throw=False,
+        )
+
+    return go(problem.y0 if y0 is None else y0)
+
+
+def step_system(solver, problem, h):
+    """The first step's projected system (context, span) and a start from uniform motion."""
+    form = solver.formulation
+    ctx = solver._context(problem.term, 0.0, h, problem.y0, problem.args)
+    dim = ctx.q0.shape[0]
+    if isinstance(solver.basis, dvi.ShallowNetBasis):
+        hidden = form.hidden.parameters(solver.basis, dim, ctx.q0.dtype)
+    else:
+        hidden = jnp.zeros((solver.basis.num_params(), dim), ctx.q0.dtype)
+    span = form.span(hidden, ctx)
+    q0, p0 = problem.y0
+    v0 = problem.term.vf(0.0, problem.y0, problem.args)[0]
+    return ctx, span, form.start(lambda tau: q0 + tau * h * v0, p0, span, ctx)
+
+
+@pytest.mark.parametrize("name, kind", [
+    *((name, "cgvi") for name in SHORT),
+    ("double_pendulum", "network"),
+    *(pytest.param(name, "network", marks=pytest.mark.slow)
+      for name in ("harmonic_oscillator", "kepler")),
+])
+def test_same_root_as_newton_on_a_step(name, kind):
+    # Newton from uniform motion, the chord from near its root (as from the previous curve
+    # continued): both run to round-off, so their step ends agree to rounding.
+    make, kw, h, _ = SHORT[name]
+    problem = make(**kw)
+    newton = family(kind)(dvi.RoundoffNewton(ftol=0.0))
+    chord = family(kind)(FixedPointIteration(ftol=0.0))
+
+    @jax.jit
+    def solve(y0):
+        ctx, span, z0 = step_system(newton, problem, h)
+        a = newton._projected_root(ctx, span, z0, 50)
+        start = jax.tree_util.tree_map(lambda x: x * (1 + 1e-3) + 1e-4, a.value)
+        b = chord._projected_root(ctx, span, start, 50)
+        end = newton.formulation.projected_end_state
+        return end(a.value, span, ctx), end(b.value, span, ctx), a.result, b.result, b.state
+
+    ya, yb, ra, rb, state = solve(problem.y0)
+    assert ra == optx.RESULTS.successful and rb == optx.RESULTS.successful
+    for a, b in zip(ya, yb, strict=True):
+        scale = max(1.0, float(jnp.max(jnp.abs(a))))
+        assert float(jnp.max(jnp.abs(a - b))) <= 8 * 2.2e-16 * scale
+    assert int(state.refreshes) == 0 and bool(state.at_floor | state.converged)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["cgvi", "network"])
+def test_same_trajectory_as_newton_at_round_off(kind):
+    # The whole solve, step after step, on the hardest of the three problems.
+    name = "double_pendulum"
+    make, kw, h, n = SHORT[name]
+    problem = make(**kw)
+    newton = run(problem, family(kind)(dvi.RoundoffNewton(ftol=0.0)), h, n)
+    chord = run(problem, family(kind)(FixedPointIteration(ftol=0.0)), h, n)
+    assert newton.result == diffrax.RESULTS.successful
+    assert chord.result == diffrax.RESULTS.successful
+    for a, b in zip(newton.ys, chord.ys, strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        assert np.max(np.abs(a - b)) <= 1e-13 * max(1.0, np.max(np.abs(a))), name
+    state = chord.solver_state
+    assert int(state.iterations) >= 2 * n  # to round-off: at least two updates a step
+    assert int(state.restarts) == 0
+
+
+def test_double_pendulum_trajectory_counts_and_vmap():
+    # CGVI(6) with the chord run to round-off: accurate, iteration counts in the solver state
+    # as for Newton, no restart; under vmap the same as a loop of single solves.
+    problem = problems.double_pendulum()
+    solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0))
+    h, n = 0.05, 20
+
+    @eqx.filter_jit
+    def go(q):
+        sol = diffrax.diffeqsolve(
+            problem.term, solver, 0.0, n * h, h, (q, problem.y0[1]), args=problem.args,
+            max_steps=n, saveat=diffrax.SaveAt(t1=True, solver_state=True), throw=False,
+        )
+        st = sol.solver_state
+        return sol.ys[0][-1], sol.result, st.iterations, st.max_iterations, st.histogram
+
+    starts = jnp.stack([problem.y0[0] * s for s in (1.0, 0.9, 1.1)])
+    loop = [go(q) for q in starts]
+    q, result, iterations, most, histogram = loop[0]
+    assert result == diffrax.RESULTS.successful
+    q_ref, _ = problem.reference(np.array([n * h]))
+    assert np.max(np.abs(np.asarray(q) - q_ref[0])) <= 1e-10
+    assert 2 * n <= int(iterations) <= 16 * n and int(most) <= 16
+    assert int(np.asarray(histogram).sum()) == n
+    batched = jax.vmap(go)(starts)
+    assert bool(jnp.all(batched[1] == diffrax.RESULTS.successful))
+    np.testing.assert_allclose(np.asarray(batched[0]), np.stack([np.asarray(o[0]) for o in loop]),
+                               rtol=0, atol=1e-14)
+    # (the iteration counts may differ by an update here and there: where the updates stop
+    # shrinking depends on rounding, which batching changes)
+
+
+def test_network_oscillator_in_one_update():
+    # The default NetworkVI step: the oscillator's projected equations are linear, so the
+    # Jacobian at the start is the Jacobian everywhere, and one chord update solves them.
+    problem = problems.harmonic_oscillator()
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
+                           root_finder=FixedPointIteration(), iteration_log=10)
+    sol = run(problem, solver, 0.1, 10)
+    assert sol.result == diffrax.RESULTS.successful
+    np.testing.assert_array_equal(np.asarray(sol.solver_state.iteration_log), 1)
+    q_ref, _ = problem.reference(np.asarray(sol.ts))
+    assert np.max(np.abs(np.asarray(sol.ys[0]) - q_ref)) <= 2e-14
+
+
+def _stiff(root_finder):
+    # A stiff quartic spring at a long step: from the previous curve continued the start is
+    # far, and the Jacobian there is not the one at the root.
+    term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 2500.0 * jnp.sum(q**4))
+    y0 = (jnp.array([1.0]), jnp.array([0.0]))
+    sol = diffrax.diffeqsolve(
+        term, dvi.CGVI(6, root_finder=root_finder), 0.0, 2.0, 0.2, y0, max_steps=10,
+        saveat=diffrax.SaveAt(t1=True), throw=False,
+    )
+    return sol.result, sol.ys[0][-1]
+
+
+def test_fails_loudly_where_the_chord_cannot_contract():
+    # The step must fail, not be accepted wrong.
+    result, _ = _stiff(FixedPointIteration(ftol=1.0))
+    assert result != diffrax.RESULTS.successful
+
+
+@pytest.mark.slow
+def test_refresh_solves_where_the_chord_fails():
+    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0))
+    refreshing, q_refreshing = _stiff(FixedPointIteration(ftol=1.0, refresh=0.5))
+    assert newton == diffrax.RESULTS.successful
+    assert refreshing == diffrax.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(q_refreshing), np.asarray(q_newton), atol=1e-10)
+
+
+def test_refresh_speeds_up_a_slow_chord_on_a_step():
+    # The double pendulum's first step at h = 0.5 from uniform motion: the chord contracts
+    # slowly (about 20 updates to round-off); refreshing the Jacobian where an update shrinks
+    # by less than 10x turns it into Newton's method.
+    problem = problems.double_pendulum()
+
+    @jax.jit
+    def solve(y0):
+        out = []
+        for rf in (FixedPointIteration(ftol=0.0), FixedPointIteration(ftol=0.0, refresh=0.1)):
+            solver = dvi.CGVI(6, root_finder=rf)
+            ctx, span, z0 = step_system(solver, problem, 0.5)
+            sol = solver._projected_root(ctx, span, z0, 100)
+            out.append((sol.value, sol.result, sol.stats["num_steps"], sol.state.refreshes))
+        return out
+
+    (plain, r_plain, n_plain, _), (fast, r_fast, n_fast, refreshes) = solve(problem.y0)
+    assert r_plain == r_fast == optx.RESULTS.successful
+    assert int(n_fast) < int(n_plain) and int(refreshes) >= 1
+    for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(plain),
+                    strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+
+
+def _system(z, args):
+    # A small smooth nonlinear system with the root (1, 2): the root finder on its own,
+    # with the Jacobian by jax.jacfwd (no "jacobian" option).
+    x, y = z[0], z[1]
+    return jnp.stack([x**2 + 0.1 * jnp.sin(y) - 1 - 0.1 * jnp.sin(2.0), y + 0.2 * x**3 - 2.2])
+
+
+@pytest.mark.parametrize("inverse", [True, False])
+@pytest.mark.parametrize("refresh", [None, 0.5])
+def test_root_finder_on_its_own(inverse, refresh):
+    rf = FixedPointIteration(ftol=0.0, inverse=inverse, refresh=refresh)
+    sol = optx.root_find(_system, rf, jnp.array([1.1, 1.9]), max_steps=50, throw=False)
+    assert sol.result == optx.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(sol.value), [1.0, 2.0], rtol=0, atol=4e-16)
+    assert int(sol.stats["num_steps"]) >= 3  # linear convergence, then the floor rule
+    assert int(sol.state.refreshes) == 0  # the start is close: no refresh needed
+    eps = float(jnp.finfo(jnp.float64).eps)
+    assert float(jnp.max(jnp.abs(sol.state.f))) <= 4 * eps
+
+
+def test_divergence_and_non_finite_are_reported():
+    rf = FixedPointIteration()
+    # arctan from beyond its turning region: the chord overshoots further on every update
+    sol = optx.root_find(lambda z, a: jnp.arctan(z), rf, jnp.array([1.5]), max_steps=50,
+                         throw=False)
+    assert sol.result == optx.RESULTS.nonlinear_divergence
+    # a Jacobian singular at the start: the first update is not finite
+    sol = optx.root_find(lambda z, a: z**3 - 1, rf, jnp.array([0.0]), max_steps=20, throw=False)
+    assert sol.result == optx.RESULTS.nonfinite
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
+@pytest.mark.parametrize("inverse", [True, False])
+def test_low_precision_stays_in_its_dtype(dtype, inverse):
+    # Below 32 bits the factorisation runs in float32; the iterates keep the working dtype.
+    rf = FixedPointIteration(ftol=0.0, inverse=inverse)
+    sol = optx.root_find(_system, rf, jnp.array([1.1, 1.9], dtype), max_steps=50, throw=False)
+    assert sol.value.dtype == dtype and sol.state.f.dtype == dtype
+    assert sol.result == optx.RESULTS.successful
+    eps = float(jnp.finfo(dtype).eps)
+    np.testing.assert_allclose(np.asarray(sol.value, np.float64), [1.0, 2.0], atol=8 * eps)
+
+
+def test_is_accepted_where_newton_is_and_checks_its_settings():
+    rf = FixedPointIteration(ftol=0.0)
+    assert isinstance(rf, dvi.RoundoffNewton)
+    solver = network(rf)
+    assert isinstance(solver.formulation, dvi.VariableProjection)
+    assert solver.root_finder is rf
+    assert dvi.CGVI(6, root_finder=rf).root_finder is rf
+    with pytest.raises(ValueError, match="refresh"):
+        FixedPointIteration(refresh=1.5)
+    with pytest.raises(ValueError, match="refresh"):
+        FixedPointIteration(refresh=0)
+    with pytest.raises(TypeError, match="inverse"):
+        FixedPointIteration(inverse=1)
+    with pytest.raises(ValueError, match="ftol"):  # the parent's checks still run
+        FixedPointIteration(ftol=-1)
