@@ -68,6 +68,7 @@ from .seeding import (
     TrajectoryFit,
 )
 from .solver import NetworkVI, NetworkVIState
+from .spectral import SpectralCGVI, spectral_degree, spectral_step_error
 from .step_size import RetryFailedSteps
 from .terms import IODETerm, LagrangianTerm
 
@@ -108,6 +109,9 @@ __all__ = [
     "VariableProjection",
     "RoundoffNewton",
     "FixedPointIteration",
+    "SpectralCGVI",
+    "spectral_degree",
+    "spectral_step_error",
     "UniformLayer",
     "FirstSeedLayer",
     "SeedLayer",

@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..interpolation import lagrange_weights
+from ..quadrature import _gauss_lobatto_upper, symmetric_points
 from .base import AbstractBasis
 
 __all__ = ["LagrangeBasis", "lobatto_points"]
@@ -19,12 +20,15 @@ __all__ = ["LagrangeBasis", "lobatto_points"]
 @functools.cache
 def lobatto_points(degree: int) -> tuple[float, ...]:
     """The `degree + 1` Gauss–Lobatto points on `[0, 1]`: both ends and the roots of
-    `P'_degree` (well-conditioned interpolation points that include the step ends)."""
+    `P'_degree` (well-conditioned interpolation points that include the step ends).
+
+    Computed in extended precision and rounded to float64 so that the points are exactly
+    symmetric about 1/2 (`τ_k + τ_{degree-k} == 1`)."""
     if degree == 1:
         return (0.0, 1.0)
-    inner = np.polynomial.legendre.Legendre.basis(degree).deriv().roots()
-    x = np.concatenate([[-1.0], np.sort(inner.real), [1.0]])
-    return tuple(float(v) for v in 0.5 * (x + 1.0))
+    upper = _gauss_lobatto_upper(degree)
+    points = symmetric_points(upper, np.float64, middle=degree % 2 == 0, ends=True)
+    return tuple(float(v) for v in points)
 
 
 class LagrangeBasis(AbstractBasis):
