@@ -89,7 +89,11 @@ def growth_configs():
     return {
         "CGVI(7) (default: compensated, ftol 1)": dvi.CGVI(7),
         "CGVI(7), compensated, ftol 0": dvi.CGVI(7, root_finder=dvi.RoundoffNewton(ftol=0.0)),
+        "CGVI(7), chord, ftol 0": dvi.CGVI(7, root_finder=dvi.FixedPointIteration(ftol=0.0)),
         "CGVI(7), uncompensated, ftol 1": dvi.CGVI(7, compensated=False),
+        "CGVI(7), uncompensated, ftol 0": dvi.CGVI(
+            7, compensated=False, root_finder=dvi.RoundoffNewton(ftol=0.0)
+        ),
         "NetworkVI tanh 10 (default)": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
     }
 

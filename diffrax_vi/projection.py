@@ -307,7 +307,15 @@ class VariableProjection(FreeEndpoints):
         return min(_features(basis), num_nodes + 1)
 
     def span(self, theta: Array, ctx: StepContext) -> ProjectedSpan:
-        """The orthonormalised span of the hidden layer of `theta` on this step."""
+        """The orthonormalised span of the hidden layer of `theta` on this step.
+
+        Where nothing it depends on is traced (a linear ansatz, or a fixed hidden layer such
+        as `UniformLayer`'s), it is computed once, when the step is traced, and enters the
+        compiled step as a constant: no factorisation per step."""
+        with jax.ensure_compile_time_eval():
+            return self._span(theta, ctx)
+
+    def _span(self, theta: Array, ctx: StepContext) -> ProjectedSpan:
         basis = ctx.basis
         dtype = ctx.q0.dtype
         nodes = ctx.nodes.astype(dtype)

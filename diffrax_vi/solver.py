@@ -462,7 +462,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         q0, p0 = _check_state(y0)
         dtype = q0.dtype
         self.basis.check(dtype)
-        nodes, weights = self.quadrature.nodes_weights(dtype)
+        with jax.ensure_compile_time_eval():  # constants of the compiled step, not traced
+            nodes, weights = self.quadrature.nodes_weights(dtype)
         t = jnp.asarray(direction * t0, dtype)
         h = jnp.asarray(direction * (t1 - t0), dtype)
         basis = self.basis.at_step(t, h)

@@ -94,7 +94,9 @@ def test_cli_parses_long_run(monkeypatch, tmp_path):
               "--out", out, "--no-progress"])
     assert seen["out"] == out
     assert list(seen["problems"]) == ["harmonic_oscillator"]
-    assert list(seen["solvers"]) == ["CGVI(7) round-off", "CGVI(7)", "CGVI(7) reference form"]
+    assert list(seen["solvers"]) == [
+        "CGVI(7) round-off", "CGVI(7)", "CGVI(7) chord round-off", "CGVI(7) reference form"
+    ]
     assert seen["full"] is False
     assert seen["command"].startswith("python -m diffrax_vi.bench long-run --quick")
     with pytest.raises(SystemExit):

@@ -41,6 +41,7 @@ import numpy as np
 from .. import problems as _problems
 from ..activations import tanh
 from ..ansatz.shallow import ShallowNetBasis
+from ..fixed_point import FixedPointIteration
 from ..methods import CGVI
 from ..problems import Problem
 from ..projection import RoundoffNewton
@@ -93,6 +94,7 @@ __all__ = [
 VARIATIONAL: dict[str, Callable[[], diffrax.AbstractSolver]] = {
     "CGVI(7) round-off": lambda: CGVI(7, root_finder=RoundoffNewton(ftol=0.0)),
     "CGVI(7)": lambda: CGVI(7),
+    "CGVI(7) chord round-off": lambda: CGVI(7, root_finder=FixedPointIteration(ftol=0.0)),
     "CGVI(7) reference form": lambda: CGVI(7, root_finder=RoundoffNewton(ftol=0.0),
                                            initial_trajectory_method=HermiteExtrapolation()),
     "NetworkVI": lambda: NetworkVI(ShallowNetBasis(tanh, 10), GaussLegendre(8)),
