@@ -14,6 +14,8 @@
    phases over `--steps` steps, the RMS of their relative energy errors and its growth
    exponent from 10^3 steps on, for `CGVI(7)` with and without compensated summation and the
    default `NetworkVI`.
+4. Compensated summation (`--only compensation`): the maximum energy error with and without
+   it at small steps (oscillator h = 0.05, Kepler h = 2π/400 and 2π/100, float32).
 
     taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/roundoff.py \\
         [--steps N] [--only energy|growth|cost] [--members M] [--solver NAME]
@@ -150,6 +152,50 @@ def energy_growth_ensemble(steps: int, members: int, only: str | None = None) ->
               + f" | {slope:.2f} | {us:.1f} |", flush=True)
 
 
+def compensation() -> None:
+    """Maximum relative energy error with and without compensated summation, at steps whose
+    increments are far below the state (and one where truncation dominates)."""
+    cases = [
+        ("oscillator, h = 0.05, CGVI(6)", problems.harmonic_oscillator(), 0.05, 40_000, 6,
+         jnp.float64),
+        ("Kepler e = 0.5, h = 2π/400, CGVI(6)", problems.kepler(eccentricity=0.5),
+         2 * np.pi / 400, 40_000, 6, jnp.float64),
+        ("Kepler e = 0.5, h = 2π/100, CGVI(6)", problems.kepler(eccentricity=0.5),
+         2 * np.pi / 100, 10_000, 6, jnp.float64),
+        ("oscillator, h = 0.05, CGVI(4), float32", problems.harmonic_oscillator(), 0.05,
+         20_000, 4, jnp.float32),
+    ]
+    print("\ncompensated summation: maximum relative energy error (one run each)")
+    print("| problem, solver | steps | compensated | plain | us per step (compensated / plain) |")
+    print("|---|---|---|---|---|")
+    for label, problem, h, steps, degree, dtype in cases:
+        y0 = jax.tree_util.tree_map(lambda a, dtype=dtype: jnp.asarray(a, dtype), problem.y0)
+        ts = jnp.asarray(np.linspace(0.0, steps * h, 501), dtype)
+        e0 = float(problem.energy(0.0, *problem.y0))
+        energy = jax.jit(jax.vmap(lambda q, p, problem=problem: problem.energy(0.0, q, p)))
+        out = []
+        for comp in (True, False):
+            solver = dvi.CGVI(degree, compensated=comp)
+
+            def run(ts, solver=solver, problem=problem, y0=y0, h=h, steps=steps, dtype=dtype):
+                return diffrax.diffeqsolve(
+                    problem.term, solver, ts[0], ts[-1], jnp.asarray(h, dtype), y0,
+                    args=problem.args, saveat=diffrax.SaveAt(ts=ts), max_steps=steps + 10,
+                )
+
+            run = jax.jit(run)
+            sol = jax.block_until_ready(run(ts))
+            times = []
+            for _ in range(3):
+                start = time.perf_counter()
+                jax.block_until_ready(run(ts))
+                times.append(time.perf_counter() - start)
+            e = np.asarray(energy(*(a.astype(jnp.float64) for a in sol.ys)))
+            out.append((np.max(np.abs(e - e0)) / abs(e0), statistics.median(times) / steps * 1e6))
+        print(f"| {label} | {steps} | {out[0][0]:.1e} | {out[1][0]:.1e} | "
+              f"{out[0][1]:.1f} / {out[1][1]:.1f} |", flush=True)
+
+
 def step_cost() -> None:
     cases = {
         "oscillator (h = 0.5)": (problems.harmonic_oscillator(), 0.5, 4000),
@@ -164,6 +210,10 @@ def step_cost() -> None:
             "Dopri8": diffrax.Dopri8(),
             "CGVI(6)": dvi.CGVI(6),
             "CGVI(6), uncompensated": dvi.CGVI(6, compensated=False),
+            "CGVI(6), chord": dvi.CGVI(6, root_finder=dvi.FixedPointIteration(ftol=1.0)),
+            "CGVI(6), chord, LU": dvi.CGVI(
+                6, root_finder=dvi.FixedPointIteration(ftol=1.0, inverse=False)
+            ),
             "CGVI(6), ftol 0": dvi.CGVI(6, root_finder=dvi.RoundoffNewton(ftol=0.0)),
             "CGVI(6), reference form": dvi.CGVI(6, root_finder=dvi.LevenbergMarquardt()),
         }
@@ -200,7 +250,8 @@ def step_cost() -> None:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=100_000)
-    parser.add_argument("--only", choices=("energy", "growth", "cost"), default=None)
+    parser.add_argument("--only", choices=("energy", "growth", "compensation", "cost"),
+                        default=None)
     parser.add_argument("--members", type=int, default=16)
     parser.add_argument("--solver", default=None, help="growth: only solvers whose name has this")
     args = parser.parse_args(argv)
@@ -208,6 +259,8 @@ def main(argv=None) -> None:
         energy_growth(args.steps)
     if args.only in (None, "growth"):
         energy_growth_ensemble(args.steps, args.members, args.solver)
+    if args.only in (None, "compensation"):
+        compensation()
     if args.only in (None, "cost"):
         step_cost()
 
