@@ -56,17 +56,9 @@ def relative_errors(q, p, q0, p0, q1, p1):
 
 
 def oscillator(steps, degrees):
-    problem = problems.harmonic_oscillator(k=1.0, q0=1.0)
-    h = np.repeat(steps, 2)
-    q0 = np.tile([[1.0], [0.0]], (len(steps), 1))
-    p0 = np.tile([[0.0], [1.0]], (len(steps), 1))
-    q1 = q0 * np.cos(h)[:, None] + p0 * np.sin(h)[:, None]
-    p1 = p0 * np.cos(h)[:, None] - q0 * np.sin(h)[:, None]
     table = {}
     for s in degrees:
-        q, p = one_step(problem.term, dvi.CGVI(s), h, q0, p0)
-        err = np.hypot(q - q1, p - p1)[:, 0].reshape(len(steps), 2).max(axis=1)
-        table[s] = err
+        table.update(oscillator_single(steps, s))
         print(f"oscillator degree {s} done", file=sys.stderr, flush=True)
     print("## 1. Oscillator, omega = 1: one-step error (measured / oscillator estimate / "
           "analytic estimate)\n")
@@ -150,6 +142,8 @@ def main() -> None:
 
 
 def oscillator_single(steps, s):
+    """`{s: one-step errors}` of `CGVI(s)` on the oscillator (ω = 1) at each of `steps`,
+    from two starting phases."""
     problem = problems.harmonic_oscillator(k=1.0, q0=1.0)
     h = np.repeat(steps, 2)
     q0 = np.tile([[1.0], [0.0]], (len(steps), 1))

@@ -20,19 +20,12 @@ from jaxtyping import Array
 
 from .lazy import unless_all_skip
 from .linalg import _work_dtype
-from .projection import RoundoffNewton
+from .projection import RoundoffNewton, _NewtonState
 
 __all__ = ["FixedPointIteration"]
 
 
-class _ChordState(eqx.Module):
-    f: Array
-    step_norm: Array
-    converged: Array
-    at_floor: Array
-    stalls: Array
-    iterations: Array
-    restarted: Array
+class _ChordState(_NewtonState):
     factors: tuple[Array, ...]
     contraction: Array
     refreshes: Array
@@ -114,13 +107,6 @@ class FixedPointIteration(RoundoffNewton):
             and 0 < self.refresh < 1
         ):
             raise ValueError(f"refresh must be None or a number in (0, 1), got {self.refresh!r}")
-
-    def _jacobian(self, fn, y, args, options):
-        given = options.get("jacobian")
-        if given is not None:
-            return given(y, args)
-        flat, unravel = ravel_pytree(y)
-        return jax.jacfwd(lambda v: ravel_pytree(fn(unravel(v), args)[0])[0])(flat)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del aux_struct, tags, f_struct

@@ -549,6 +549,16 @@ class RoundoffNewton(optx.AbstractRootFinder):
     def _tolerance(self, name: str, dtype) -> float:
         return getattr(self, name) * float(jnp.finfo(dtype).eps)
 
+    @staticmethod
+    def _jacobian(fn, y, args, options) -> Array:
+        """The Jacobian at `y`: `options["jacobian"]` where the caller gives one, else
+        `jax.jacfwd` of the flattened residual."""
+        given = options.get("jacobian")
+        if given is not None:
+            return given(y, args)
+        flat, unravel = ravel_pytree(y)
+        return jax.jacfwd(lambda v: ravel_pytree(fn(unravel(v), args)[0])[0])(flat)
+
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del aux_struct, tags, f_struct
         del options
@@ -571,9 +581,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
 
-        given = options.get("jacobian")
-        jac = given(y, args) if given is not None else jax.jacfwd(lambda v: residual(v)[0])(flat_y)
-        d = solve(jac.astype(dtype), -state.f)
+        d = solve(self._jacobian(fn, y, args, options).astype(dtype), -state.f)
         fmax = jnp.max(jnp.abs(state.f))
         near = fmax <= self._tolerance("floor", dtype) * scale
         f_full, aux_full = residual(flat_y + d)

@@ -195,10 +195,13 @@ class SeedPolicy(eqx.Module):
         warm = self._warm_seed(ctx, record)
         if isinstance(rule, UniformLayer) or not isinstance(ctx.basis, ShallowNetBasis):
             dim = ctx.q0.shape[0]
-            if isinstance(ctx.basis, ShallowNetBasis):
-                hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
-            else:  # a linear ansatz: its span has no hidden layer to choose
-                hidden = ctx.basis.zeros(dim, ctx.q0.dtype)
+            # Constants of the compiled step, not traced: the span built on them is then
+            # computed once, when the step is traced (`VariableProjection.span`).
+            with jax.ensure_compile_time_eval():
+                if isinstance(ctx.basis, ShallowNetBasis):
+                    hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
+                else:  # a linear ansatz: its span has no hidden layer to choose
+                    hidden = ctx.basis.zeros(dim, ctx.q0.dtype)
             start = self._continued_or_constant(ctx, record, warm)
         else:
             seed = jax.lax.cond(
