@@ -14,9 +14,11 @@
    chord iteration slows down, refreshes its Jacobian or fails.
 4. The Jacobian carried from step to step: iterations of the chord iteration when each step
    uses the Jacobian at the previous step's root (what a solver state holding it would do).
+5. The kinetic matrix (`matrix="kinetic"`) against the Jacobian, on the three problems and the
+   outer solar system (18 coordinates).
 
     taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/fixed_point.py \\
-        [--only cost|profile|hard|reuse] [--repeats 5] > benchmarks/results/fixed_point.txt
+        [--only cost|profile|hard|reuse|kinetic] [--repeats 5] > benchmarks/results/fixed_point.txt
 """
 
 from __future__ import annotations
@@ -361,9 +363,51 @@ def reuse() -> None:
                   flush=True)
 
 
+def kinetic(repeats: int) -> None:
+    """The kinetic matrix against the Jacobian, on the three problems above and the outer
+    solar system (18 coordinates, CGVI(7) at h = 500 days over 10^5 days)."""
+    cases = dict(CASES)
+    cases["outer solar system (h = 500 days)"] = (
+        lambda: problems.outer_solar_system(dtype=jnp.float64), {}, 500.0, 200)
+    print(f"\nkinetic matrix: us per constant step (median of {repeats} interleaved runs after "
+          "compiling; ratio to Dopri8 at the same step), iterations per step, and the final "
+          "position's difference to Newton's at round-off (relative)")
+    print("| problem | solver | us per step | / Dopri8 | iterations per step | "
+          "difference to Newton |")
+    print("|---|---|---|---|---|---|")
+    for label, (make, kw, h, n) in cases.items():
+        problem = make(**kw)
+        order = 7 if "solar" in label else 6
+        finders = {
+            "Newton, ftol 0": dvi.RoundoffNewton(ftol=0.0),
+            "chord, ftol 0": FixedPointIteration(ftol=0.0),
+            "kinetic, ftol 0": FixedPointIteration(ftol=0.0, matrix="kinetic"),
+            "kinetic, ftol 1": FixedPointIteration(ftol=1.0, matrix="kinetic"),
+        }
+        solvers = {"Dopri8": diffrax.Dopri8()}
+        solvers.update({f"CGVI({order}), {name}": dvi.CGVI(order, root_finder=rf)
+                        for name, rf in finders.items()})
+        runs = {name: _runner(problem, solver, h, n) for name, solver in solvers.items()}
+        us = _interleaved_us(runs, problem.y0, n, repeats)
+        q_newton = None
+        for name, solver in solvers.items():
+            q, ok, its = jax.block_until_ready(runs[name](problem.y0))
+            q = np.asarray(q)
+            if "Newton" in name:
+                q_newton = q
+            variational = isinstance(solver, dvi.NetworkVI)
+            iters = f"{int(its) / n:.2f}" if variational else "-"
+            diff = (f"{np.max(np.abs(q - q_newton)) / np.max(np.abs(q_newton)):.1e}"
+                    if variational else "-")
+            status = "" if bool(ok) else " (failed)"
+            print(f"| {label} | {name}{status} | {us[name]:.1f} | "
+                  f"{us[name] / us['Dopri8']:.2f} | {iters} | {diff} |", flush=True)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=("cost", "profile", "hard", "reuse"), default=None)
+    parser.add_argument("--only", choices=("cost", "profile", "hard", "reuse", "kinetic"),
+                        default=None)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
     if args.only in (None, "cost"):
@@ -374,6 +418,8 @@ def main(argv=None) -> None:
         hard(args.repeats)
     if args.only in (None, "reuse"):
         reuse()
+    if args.only in (None, "kinetic"):
+        kinetic(args.repeats)
 
 
 if __name__ == "__main__":

@@ -12,13 +12,18 @@
    iterations per step and the final position error against the reference.
 3. Growth on an ensemble (`--only growth`): `--members` oscillators of equal energy and spread
    phases over `--steps` steps, the RMS of their relative energy errors and its growth
-   exponent from 10^3 steps on, for `CGVI(7)` with and without compensated summation and the
-   default `NetworkVI`.
+   exponent from 10^3 steps on, for `CGVI(7)` with and without compensated summation, with
+   and without `confirm`, by Newton, the chord and the kinetic iteration, and the default
+   `NetworkVI`.
 4. Compensated summation (`--only compensation`): the maximum energy error with and without
    it at small steps (oscillator h = 0.05, Kepler h = 2π/400 and 2π/100, float32).
+5. Energy bias per step (`--only bias`): each step's end against the exact map (long double)
+   of the same discrete Lagrangian from its start, along oscillator trajectories; the mean
+   energy change rounding adds per step, per root finder.
 
     taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/roundoff.py \\
-        [--steps N] [--only energy|growth|cost] [--members M] [--solver NAME]
+        [--steps N] [--only energy|growth|compensation|cost|bias] [--members M]
+        [--solver NAME]
 """
 
 from __future__ import annotations
@@ -89,9 +94,19 @@ def energy_growth(steps: int) -> None:
 
 def growth_configs():
     return {
-        "CGVI(7) (default: compensated, ftol 1)": dvi.CGVI(7),
+        "CGVI(7) (default: compensated, ftol 1, confirm)": dvi.CGVI(7),
+        "CGVI(7), ftol 1 without confirm (the default before)": dvi.CGVI(
+            7, root_finder=dvi.RoundoffNewton(ftol=1.0, confirm=False)
+        ),
         "CGVI(7), compensated, ftol 0": dvi.CGVI(7, root_finder=dvi.RoundoffNewton(ftol=0.0)),
+        "CGVI(7), chord, ftol 1": dvi.CGVI(7, root_finder=dvi.FixedPointIteration(ftol=1.0)),
         "CGVI(7), chord, ftol 0": dvi.CGVI(7, root_finder=dvi.FixedPointIteration(ftol=0.0)),
+        "CGVI(7), kinetic fixed point, ftol 0": dvi.CGVI(
+            7, root_finder=dvi.FixedPointIteration(ftol=0.0, matrix="kinetic")
+        ),
+        "CGVI(7), kinetic fixed point, ftol 1": dvi.CGVI(
+            7, root_finder=dvi.FixedPointIteration(ftol=1.0, matrix="kinetic")
+        ),
         "CGVI(7), uncompensated, ftol 1": dvi.CGVI(7, compensated=False),
         "CGVI(7), uncompensated, ftol 0": dvi.CGVI(
             7, compensated=False, root_finder=dvi.RoundoffNewton(ftol=0.0)
@@ -247,10 +262,121 @@ def step_cost() -> None:
                   f"| {err:.1e} |", flush=True)
 
 
+def bias_configs():
+    rf = dvi.RoundoffNewton
+    fp = dvi.FixedPointIteration
+    return {
+        "Newton, ftol 1, without confirm (the default before)": dict(
+            root_finder=rf(ftol=1.0, confirm=False)),
+        "Newton, ftol 1 (CGVI's default: confirm)": dict(root_finder=rf(ftol=1.0)),
+        "Newton, ftol 0": dict(root_finder=rf(ftol=0.0)),
+        "chord, ftol 1, without confirm": dict(root_finder=fp(ftol=1.0, confirm=False)),
+        "chord, ftol 1": dict(root_finder=fp(ftol=1.0)),
+        "chord, ftol 0": dict(root_finder=fp(ftol=0.0)),
+        "kinetic, ftol 0": dict(root_finder=fp(ftol=0.0, matrix="kinetic")),
+    }
+
+
+def _exact_increments(span, ctx, q0, p0, m, k):
+    """The increments `(Δq, Δp)` of the oscillator's projected step solved in long double, for
+    the span, weights and step of the float64 step: the exact map of the same (symplectic)
+    discrete Lagrangian, for states `q0`, `p0` (`(N,)`)."""
+    ld = np.longdouble
+    gq, gv = (np.asarray(a, np.float64)[0].astype(ld) for a in (span.gq, span.gv))
+    g0, gd = (np.asarray(a, np.float64)[0].astype(ld) for a in (span.g0, span.gd))
+    b = np.asarray(ctx.weights, np.float64).astype(ld)
+    h, m, k = ld(float(ctx.h)), ld(m), ld(k)
+    size = gq.shape[1]
+    a = np.zeros((size + 1, size + 1), ld)
+    a[:size, :size] = (h * k * np.einsum("j,jl,jk->kl", b, gq, gq)
+                       - (m / h) * np.einsum("j,jl,jk->kl", b, gv, gv))
+    a[:size, size] = g0 + gd
+    a[size, :size] = -g0
+    q0, p0 = np.asarray(q0, np.float64).astype(ld), np.asarray(p0, np.float64).astype(ld)
+    rhs = np.zeros((size + 1, q0.shape[0]), ld)
+    rhs[:size] = -(gd[:, None] * p0[None] + h * k * np.einsum("j,jk->k", b, gq)[:, None]
+                   * q0[None])
+    # no long-double solver in NumPy: Gaussian elimination with partial pivoting
+    z = _solve_ld(a, rhs)
+    return gd @ z[:size], z[size]
+
+
+def _solve_ld(a, rhs):
+    a, rhs = a.copy(), rhs.copy()
+    n = a.shape[0]
+    for i in range(n):
+        piv = i + int(np.argmax(np.abs(a[i:, i])))
+        a[[i, piv]], rhs[[i, piv]] = a[[piv, i]], rhs[[piv, i]]
+        for r in range(i + 1, n):
+            f = a[r, i] / a[i, i]
+            a[r, i:] -= f * a[i, i:]
+            rhs[r] -= f * rhs[i]
+    z = np.zeros_like(rhs)
+    for i in reversed(range(n)):
+        z[i] = (rhs[i] - a[i, i + 1:] @ z[i + 1:]) / a[i, i]
+    return z
+
+
+def energy_bias(steps: int, members: int) -> None:
+    """Where the energy drift comes from: along `members` oscillator trajectories of `steps`
+    uncompensated `CGVI(7)` steps (h = 0.5), each step's end is compared with the exact map of
+    the same discrete Lagrangian applied to its start (`_exact_increments`, long double). The
+    mean of the energy change that rounding adds per step is the drift rate; Brouwer's law
+    needs it to vanish (against its standard error), leaving a random walk."""
+    problem = problems.harmonic_oscillator()
+    h, m, k = 0.5, 1.0, 0.5
+    omega = (k / m) ** 0.5
+    amplitude = float(problem.y0[0][0])
+    phases = 2 * np.pi * (np.arange(members) + 0.1234) / members
+    ld = np.longdouble
+
+    def energy(q, p):
+        return p.astype(ld) ** 2 / (2 * ld(m)) + ld(k) * q.astype(ld) ** 2 / 2
+
+    print(f"\nenergy bias per step: oscillator, h = {h}, CGVI(7) uncompensated, {members} "
+          f"trajectories of {steps} steps; mean and standard error over all steps of "
+          "(E(end) - E(exact map of start)) / E0, in units of eps")
+    print("| root finder | mean | standard error | mean / standard error | "
+          "RMS per step | drift over the run (mean x steps, relative) |")
+    print("|---|---|---|---|---|---|")
+    eps = float(np.finfo(np.float64).eps)
+    for name, options in bias_configs().items():
+        solver = dvi.CGVI(7, compensated=False, **options)
+        ctx = solver._context(problem.term, 0.0, h, problem.y0, problem.args)
+        span = solver.formulation.span(
+            jnp.zeros((solver.basis.num_params(), 1)), ctx)
+
+        def run(q, p, solver=solver):
+            return diffrax.diffeqsolve(
+                problem.term, solver, 0.0, steps * h, h, (q, p), args=problem.args,
+                max_steps=steps, saveat=diffrax.SaveAt(t0=True, steps=True), throw=False,
+            )
+
+        run = jax.jit(run)
+        changes = []
+        for phase in phases:
+            q0 = jnp.array([amplitude * np.cos(phase)])
+            p0 = jnp.array([-m * omega * amplitude * np.sin(phase)])
+            sol = run(q0, p0)
+            q = np.asarray(sol.ys[0])[:, 0]
+            p = np.asarray(sol.ys[1])[:, 0]
+            dq, dp = _exact_increments(span, ctx, q[:-1], p[:-1], m, k)
+            exact_q = q[:-1].astype(ld) + dq
+            exact_p = p[:-1].astype(ld) + dp
+            e0 = energy(q[:1], p[:1])[0]
+            changes.append(np.asarray((energy(q[1:], p[1:]) - energy(exact_q, exact_p)) / e0,
+                                      np.float64))
+        c = np.concatenate(changes) / eps
+        mean, se = float(np.mean(c)), float(np.std(c) / np.sqrt(c.size))
+        print(f"| {name} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} | "
+              f"{float(np.sqrt(np.mean(c**2))):.2f} | {mean * steps * eps:+.1e} |", flush=True)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=100_000)
-    parser.add_argument("--only", choices=("energy", "growth", "compensation", "cost"),
+    parser.add_argument("--only",
+                        choices=("energy", "growth", "compensation", "cost", "bias"),
                         default=None)
     parser.add_argument("--members", type=int, default=16)
     parser.add_argument("--solver", default=None, help="growth: only solvers whose name has this")
@@ -263,6 +389,8 @@ def main(argv=None) -> None:
         compensation()
     if args.only in (None, "cost"):
         step_cost()
+    if args.only in (None, "bias"):
+        energy_bias(min(args.steps, 100_000), min(args.members, 4))
 
 
 if __name__ == "__main__":

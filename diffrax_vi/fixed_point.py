@@ -1,5 +1,8 @@
 """A chord (simplified Newton) iteration for the projected step of non-stiff problems.
 
+Two matrices serve: the Jacobian at the start of the solve, or its kinetic part alone
+(`matrix="kinetic"`), which needs no derivatives of the forces.
+
 `RoundoffNewton` forms and factorises a fresh Jacobian on every iteration. When the start is
 already close to the root (the previous step's curve continued, on a non-stiff problem), the
 Jacobian hardly changes during a solve, and the fixed-point iteration
@@ -63,9 +66,10 @@ class FixedPointIteration(RoundoffNewton):
     problem solved from the previous step's curve. A drop-in for `RoundoffNewton` wherever
     the solver accepts one (`CGVI`, the projected `NetworkVI` step).
 
-    Stopping rules are those of `RoundoffNewton`: converged at `max|F| ≤ ftol · eps · scale`,
-    or at round-off once `max|F| ≤ floor · eps · scale` and the update has stopped shrinking
-    (`ftol=0` runs every solve there). Every solve makes at least one update. There is no line
+    Stopping rules are those of `RoundoffNewton`: converged at `max|F| ≤ ftol · eps · scale`
+    after an update within `√eps` of the unknowns (`confirm`), or at round-off once
+    `max|F| ≤ floor · eps · scale` and the update has stopped shrinking (`ftol=0` runs every
+    solve there). Every solve makes at least one update. There is no line
     search: each update is taken. An iteration far from the root (above `floor`) whose
     residual does not fall, or whose update is no smaller than the one before, is a stall;
     `max_stalls` stalls in a row end the solve as `nonlinear_divergence`, a non-finite
@@ -77,7 +81,8 @@ class FixedPointIteration(RoundoffNewton):
 
     **Arguments:**
 
-    - `ftol`, `floor`, `max_stalls`: as for `RoundoffNewton` (defaults 64, 4096, 3).
+    - `ftol`, `floor`, `confirm`, `max_stalls`: as for `RoundoffNewton` (defaults 64, 4096,
+      `True`, 3).
     - `refresh`: `None` (default) keeps the start's Jacobian for the whole solve. A number
       `ρ` in `(0, 1)` forms and factorises the Jacobian again at the current point whenever,
       far from the root, the update shrank by less than `ρ` (the estimated contraction
@@ -89,6 +94,16 @@ class FixedPointIteration(RoundoffNewton):
       matrix-vector product per iteration, where a pair of triangular solves costs more than
       the residual at the sizes of a step) or by triangular solves (`False`). The fixed point
       is the root either way; only the contraction factor sees the inverse's rounding.
+    - `matrix`: the matrix of the iteration. `"jacobian"` (default): the Jacobian at the
+      start, as above. `"kinetic"`: the Jacobian of the kinetic part alone, for a Lagrangian
+      `½ vᵀ M v` with `M = ∂²L/∂v²` averaged over the nodes of the start
+      (`VariableProjection.kinetic_inverse`; only the projected step supplies it). It needs
+      no derivative of the forces and, where the span is the same in every coordinate
+      (`CGVI`, the default network step), costs one small inverse per coordinate block:
+      cheap for many coordinates. It contracts at a rate of order `(hω)²` for a motion of
+      frequency `ω`, and slower where `M` or the forces depend on the velocities. It needs
+      `M` invertible (a regular Lagrangian); a degenerate one fails the step. With `refresh`,
+      a slow or stalled update switches the solve to the full Jacobian (Newton's update).
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 
@@ -98,8 +113,11 @@ class FixedPointIteration(RoundoffNewton):
 
     refresh: float | None = eqx.field(static=True, default=None)
     inverse: bool = eqx.field(static=True, default=True)
+    matrix: str = eqx.field(static=True, default="jacobian")
 
     def __check_init__(self):
+        if self.matrix not in ("jacobian", "kinetic"):
+            raise ValueError(f"matrix must be 'jacobian' or 'kinetic', got {self.matrix!r}")
         if not isinstance(self.inverse, bool):
             raise TypeError(f"inverse must be True or False, got {self.inverse!r}")
         if self.refresh is not None and not (
@@ -108,12 +126,37 @@ class FixedPointIteration(RoundoffNewton):
         ):
             raise ValueError(f"refresh must be None or a number in (0, 1), got {self.refresh!r}")
 
+    def _apply(self, factors: tuple, f: Array, y) -> Array:
+        """`M⁻¹ f` for the iteration's matrix `M` (flat `f`)."""
+        if self.matrix == "jacobian":
+            return _apply(factors, f)
+        # the projected step's residual `(r, c)` is shaped like its unknowns `(δc, Δp)`
+        _, unravel = ravel_pytree(y)
+        kinetic = ravel_pytree(factors[0](unravel(f)))[0].astype(f.dtype)
+        if len(factors) == 1:
+            return kinetic
+        return jnp.where(factors[2], _apply(factors[1:2], f), kinetic)
+
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del aux_struct, tags, f_struct
         f, _ = fn(y, args)
         flat = ravel_pytree(f)[0]
         dtype = ravel_pytree(y)[0].dtype
-        factors = _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
+        if self.matrix == "kinetic":
+            kinetic = options.get("kinetic")
+            if kinetic is None:
+                raise ValueError(
+                    "FixedPointIteration(matrix='kinetic') needs the kinetic part of the "
+                    "Jacobian, which only the projected step supplies (CGVI, or NetworkVI with "
+                    "formulation=VariableProjection())"
+                )
+            factors = (kinetic(y, args),)
+            if self.refresh is not None:
+                size = flat.shape[0]
+                work = _work_dtype(dtype)
+                factors += (jnp.zeros((size, size), work), jnp.array(False))
+        else:
+            factors = _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
         inf = jnp.full((), jnp.inf, flat.dtype)
         zero = jnp.array(0, jnp.int32)
         no = jnp.array(False)
@@ -131,7 +174,7 @@ class FixedPointIteration(RoundoffNewton):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
 
-        d = -_apply(state.factors, state.f)
+        d = -self._apply(state.factors, state.f, y)
         fmax = jnp.max(jnp.abs(state.f))
         near = fmax <= floor
         f_new, aux = residual(flat_y + d)
@@ -185,6 +228,8 @@ class FixedPointIteration(RoundoffNewton):
             need = chord_stall | slow
             fresh = state.fresh & undo
         converged = fmax_new <= self._tolerance("ftol", dtype) * scale
+        if self.confirm:
+            converged = converged & self._confirmed(norm, new, dtype)
         # Rounding has taken over once an update near the root is no smaller than the one
         # before it.
         at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)
@@ -218,7 +263,14 @@ class FixedPointIteration(RoundoffNewton):
                 point, f_point = current
                 if give_up is not None:
                     point, f_point = unless_all_skip(give_up, fresh_start, current)
+                if self.matrix == "kinetic" and self.refresh is None:
+                    # a restart: the kinetic matrix at the restart point
+                    return point, f_point, (options["kinetic"](unravel(point), args),)
                 jac = self._jacobian(fn, unravel(point), args, options)
+                if self.matrix == "kinetic":
+                    # the kinetic matrix gives way to the Jacobian itself (Newton's update)
+                    inverse = _factor(jac, dtype, True)[0]
+                    return point, f_point, (factors[0], inverse, jnp.array(True))
                 return point, f_point, _factor(jac, dtype, self.inverse)
 
             new, f_new, factors = unless_all_skip(need, refactor, (new, f_new, factors))

@@ -610,7 +610,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def _projected_root(self, ctx: StepContext, span, z0, max_steps: int, restart=None,
                         history=None):
         form = self.formulation
-        options = dict(scale=_residual_scale(ctx), jacobian=form.reduced_jacobian)
+        options = dict(
+            scale=_residual_scale(ctx),
+            jacobian=form.reduced_jacobian,
+            kinetic=functools.partial(form.kinetic_inverse, uniform=form.uniform_span(span)),
+        )
         if restart is not None:
             options["restart"] = restart
         return optx.root_find(

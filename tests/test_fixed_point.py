@@ -141,15 +141,17 @@ def test_double_pendulum_trajectory_counts_and_vmap():
     # shrinking depends on rounding, which batching changes)
 
 
-def test_network_oscillator_in_one_update():
+@pytest.mark.parametrize("confirm, updates", [(False, 1), (True, 2)])
+def test_network_oscillator_in_one_update(confirm, updates):
     # The default NetworkVI step: the oscillator's projected equations are linear, so the
-    # Jacobian at the start is the Jacobian everywhere, and one chord update solves them.
+    # Jacobian at the start is the Jacobian everywhere, and one chord update solves them;
+    # `confirm` (the default) adds the update that removes the first one's bias.
     problem = problems.harmonic_oscillator()
     solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
-                           root_finder=FixedPointIteration(), iteration_log=10)
+                           root_finder=FixedPointIteration(confirm=confirm), iteration_log=10)
     sol = run(problem, solver, 0.1, 10)
     assert sol.result == diffrax.RESULTS.successful
-    np.testing.assert_array_equal(np.asarray(sol.solver_state.iteration_log), 1)
+    np.testing.assert_array_equal(np.asarray(sol.solver_state.iteration_log), updates)
     q_ref, _ = problem.reference(np.asarray(sol.ts))
     assert np.max(np.abs(np.asarray(sol.ys[0]) - q_ref)) <= 2e-14
 
@@ -263,3 +265,132 @@ def test_is_accepted_where_newton_is_and_checks_its_settings():
         FixedPointIteration(inverse=1)
     with pytest.raises(ValueError, match="ftol"):  # the parent's checks still run
         FixedPointIteration(ftol=-1)
+
+
+# -- the kinetic matrix ---------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["cgvi", "network"])
+@pytest.mark.parametrize("uniform", [True, False])
+def test_kinetic_inverse_is_the_jacobian_inverse_without_forces(kind, uniform):
+    mass = jnp.array([[2.0, 0.3], [0.3, 1.0]])
+    term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ mass @ v)
+    y0 = (jnp.array([0.3, -0.2]), jnp.array([0.5, 0.1]))
+    solver = family(kind)(FixedPointIteration(matrix="kinetic"))
+    form = solver.formulation
+    ctx = solver._context(term, 0.0, 0.25, y0, None)
+    dim = 2
+    if isinstance(solver.basis, dvi.ShallowNetBasis):
+        hidden = form.hidden.parameters(solver.basis, dim, jnp.float64)
+    else:
+        hidden = jnp.zeros((solver.basis.num_params(), dim), jnp.float64)
+    span = form.span(hidden, ctx)
+    assert form.uniform_span(span)  # one span in every coordinate, known at trace time
+    k = span.gq.shape[2]
+    rng = np.random.default_rng(0)
+    z = (jnp.asarray(rng.normal(size=(k, dim))) * span.live, jnp.asarray(rng.normal(size=dim)))
+    f = (jnp.asarray(rng.normal(size=(k, dim))) * span.live, jnp.asarray(rng.normal(size=dim)))
+    inverse = form.kinetic_inverse(z, (ctx, span), uniform=uniform)
+    jac = form.reduced_jacobian(z, (ctx, span))
+    flat_f, unravel = jax.flatten_util.ravel_pytree(f)
+    expected = jnp.linalg.solve(jac, flat_f)
+    got = jax.flatten_util.ravel_pytree(inverse(f))[0]
+    np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=0,
+                               atol=1e-11 * float(jnp.max(jnp.abs(expected))))
+
+
+@pytest.mark.parametrize("name", list(SHORT))
+def test_kinetic_iteration_reaches_newtons_trajectory(name):
+    make, kw, h, n = SHORT[name]
+    problem = make(**kw)
+    newton = run(problem, dvi.CGVI(6, root_finder=dvi.RoundoffNewton(ftol=0.0)), h, n)
+    kinetic = run(problem, dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0,
+                                                                       matrix="kinetic")), h, n)
+    assert kinetic.result == diffrax.RESULTS.successful
+    for a, b in zip(newton.ys, kinetic.ys, strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        assert np.max(np.abs(a - b)) <= 1e-13 * max(1.0, np.max(np.abs(a))), name
+    state = kinetic.solver_state
+    assert int(state.restarts) == 0
+    # linear convergence at a rate of order (hω)²: more updates than Newton, but bounded
+    assert 2 * n <= int(state.iterations) <= 20 * n
+
+
+@pytest.mark.slow
+def test_kinetic_iteration_on_the_outer_solar_system():
+    # 18 coordinates at h = 500 days: the chord iteration's 162-square Jacobian costs more
+    # than all of the kinetic iteration's updates (see the benchmarks page).
+    problem = problems.outer_solar_system(dtype=jnp.float64)
+    h, n = 500.0, 10
+    newton = run(problem, dvi.CGVI(7, root_finder=dvi.RoundoffNewton(ftol=0.0)), h, n)
+    kinetic = run(problem, dvi.CGVI(7, root_finder=FixedPointIteration(
+        ftol=0.0, matrix="kinetic")), h, n)
+    assert kinetic.result == diffrax.RESULTS.successful
+    a, b = np.asarray(newton.ys[0]), np.asarray(kinetic.ys[0])
+    assert np.max(np.abs(a - b)) <= 1e-13 * np.max(np.abs(a))
+
+
+def test_kinetic_iteration_with_a_network_and_under_vmap():
+    problem = problems.double_pendulum()
+    solver = network(FixedPointIteration(ftol=0.0, matrix="kinetic"))
+    h, n = 0.05, 10
+
+    @eqx.filter_jit
+    def go(q):
+        sol = diffrax.diffeqsolve(
+            problem.term, solver, 0.0, n * h, h, (q, problem.y0[1]), args=problem.args,
+            max_steps=n, saveat=diffrax.SaveAt(t1=True), throw=False,
+        )
+        return sol.ys[0][-1], sol.result
+
+    starts = jnp.stack([problem.y0[0] * s for s in (1.0, 0.9)])
+    loop = [go(q) for q in starts]
+    assert all(r == diffrax.RESULTS.successful for _, r in loop)
+    q_ref, _ = problem.reference(np.array([n * h]))
+    assert np.max(np.abs(np.asarray(loop[0][0]) - q_ref[0])) <= 1e-10
+    batched = jax.vmap(go)(starts)
+    np.testing.assert_allclose(np.asarray(batched[0]), np.stack([np.asarray(o[0]) for o in loop]),
+                               rtol=0, atol=1e-14)
+
+
+def test_kinetic_iteration_fails_loudly_or_refreshes():
+    # The stiff spring: the kinetic matrix cannot see the force's stiffness. Without a
+    # refresh the step fails; with one, the iteration turns into Newton's and solves it.
+    result, _ = _stiff(FixedPointIteration(ftol=1.0, matrix="kinetic"))
+    assert result != diffrax.RESULTS.successful
+    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0))
+    refreshing, q_refreshing = _stiff(FixedPointIteration(ftol=1.0, matrix="kinetic",
+                                                          refresh=0.5))
+    assert refreshing == diffrax.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(q_refreshing), np.asarray(q_newton), atol=1e-10)
+
+
+def test_kinetic_iteration_refuses_a_degenerate_lagrangian_loudly():
+    # L linear in v has no mass matrix: the kinetic matrix is singular and the step fails.
+    term = dvi.LagrangianTerm(lambda t, q, v, args: q[0] * v[1] - 0.5 * q @ q)
+    y0 = (jnp.array([0.5, 0.2]), jnp.array([0.0, 0.5]))
+    sol = diffrax.diffeqsolve(
+        term, dvi.CGVI(4, root_finder=FixedPointIteration(matrix="kinetic")), 0.0, 0.3, 0.1,
+        y0, max_steps=5, throw=False,
+    )
+    assert sol.result != diffrax.RESULTS.successful
+
+
+def test_kinetic_matrix_needs_the_projected_step():
+    with pytest.raises(ValueError, match="matrix"):
+        FixedPointIteration(matrix="mass")
+    rf = FixedPointIteration(matrix="kinetic")
+    with pytest.raises(ValueError, match="kinetic"):
+        optx.root_find(_system, rf, jnp.array([1.1, 1.9]), max_steps=5, throw=False)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
+def test_kinetic_iteration_stays_in_its_dtype(dtype):
+    problem = problems.harmonic_oscillator(dtype=dtype)
+    solver = dvi.CGVI(4, root_finder=FixedPointIteration(matrix="kinetic"))
+    t0, t1, dt = (jnp.asarray(x, dtype) for x in (0.0, 2.0, 0.25))  # times in the state's dtype
+    sol = diffrax.diffeqsolve(problem.term, solver, t0, t1, dt, problem.y0,
+                              args=problem.args, max_steps=8, throw=False)
+    assert sol.result == diffrax.RESULTS.successful
+    assert sol.ys[0].dtype == dtype and sol.ys[1].dtype == dtype
+    q_ref, _ = problem.reference(np.array([2.0]))
+    eps = float(jnp.finfo(dtype).eps)
+    assert np.max(np.abs(np.asarray(sol.ys[0][-1], np.float64) - q_ref[0])) <= 64 * eps

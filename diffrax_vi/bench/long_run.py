@@ -95,6 +95,9 @@ VARIATIONAL: dict[str, Callable[[], diffrax.AbstractSolver]] = {
     "CGVI(7) round-off": lambda: CGVI(7, root_finder=RoundoffNewton(ftol=0.0)),
     "CGVI(7)": lambda: CGVI(7),
     "CGVI(7) chord round-off": lambda: CGVI(7, root_finder=FixedPointIteration(ftol=0.0)),
+    "CGVI(7) kinetic round-off": lambda: CGVI(
+        7, root_finder=FixedPointIteration(ftol=0.0, matrix="kinetic")
+    ),
     "CGVI(7) reference form": lambda: CGVI(7, root_finder=RoundoffNewton(ftol=0.0),
                                            initial_trajectory_method=HermiteExtrapolation()),
     "NetworkVI": lambda: NetworkVI(ShallowNetBasis(tanh, 10), GaussLegendre(8)),
