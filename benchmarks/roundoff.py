@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
+from diffrax_vi.bench import rounding_bias  # noqa: E402
 
 
 def energy_configs():
@@ -224,6 +225,9 @@ def step_cost() -> None:
         solvers = {
             "Dopri8": diffrax.Dopri8(),
             "CGVI(6)": dvi.CGVI(6),
+            "CGVI(6), without confirm": dvi.CGVI(
+                6, root_finder=dvi.RoundoffNewton(ftol=1.0, confirm=False)
+            ),
             "CGVI(6), uncompensated": dvi.CGVI(6, compensated=False),
             "CGVI(6), chord": dvi.CGVI(6, root_finder=dvi.FixedPointIteration(ftol=1.0)),
             "CGVI(6), chord, LU": dvi.CGVI(
@@ -277,50 +281,10 @@ def bias_configs():
     }
 
 
-def _exact_increments(span, ctx, q0, p0, m, k):
-    """The increments `(Δq, Δp)` of the oscillator's projected step solved in long double, for
-    the span, weights and step of the float64 step: the exact map of the same (symplectic)
-    discrete Lagrangian, for states `q0`, `p0` (`(N,)`)."""
-    ld = np.longdouble
-    gq, gv = (np.asarray(a, np.float64)[0].astype(ld) for a in (span.gq, span.gv))
-    g0, gd = (np.asarray(a, np.float64)[0].astype(ld) for a in (span.g0, span.gd))
-    b = np.asarray(ctx.weights, np.float64).astype(ld)
-    h, m, k = ld(float(ctx.h)), ld(m), ld(k)
-    size = gq.shape[1]
-    a = np.zeros((size + 1, size + 1), ld)
-    a[:size, :size] = (h * k * np.einsum("j,jl,jk->kl", b, gq, gq)
-                       - (m / h) * np.einsum("j,jl,jk->kl", b, gv, gv))
-    a[:size, size] = g0 + gd
-    a[size, :size] = -g0
-    q0, p0 = np.asarray(q0, np.float64).astype(ld), np.asarray(p0, np.float64).astype(ld)
-    rhs = np.zeros((size + 1, q0.shape[0]), ld)
-    rhs[:size] = -(gd[:, None] * p0[None] + h * k * np.einsum("j,jk->k", b, gq)[:, None]
-                   * q0[None])
-    # no long-double solver in NumPy: Gaussian elimination with partial pivoting
-    z = _solve_ld(a, rhs)
-    return gd @ z[:size], z[size]
-
-
-def _solve_ld(a, rhs):
-    a, rhs = a.copy(), rhs.copy()
-    n = a.shape[0]
-    for i in range(n):
-        piv = i + int(np.argmax(np.abs(a[i:, i])))
-        a[[i, piv]], rhs[[i, piv]] = a[[piv, i]], rhs[[piv, i]]
-        for r in range(i + 1, n):
-            f = a[r, i] / a[i, i]
-            a[r, i:] -= f * a[i, i:]
-            rhs[r] -= f * rhs[i]
-    z = np.zeros_like(rhs)
-    for i in reversed(range(n)):
-        z[i] = (rhs[i] - a[i, i + 1:] @ z[i + 1:]) / a[i, i]
-    return z
-
-
 def energy_bias(steps: int, members: int) -> None:
     """Where the energy drift comes from: along `members` oscillator trajectories of `steps`
     uncompensated `CGVI(7)` steps (h = 0.5), each step's end is compared with the exact map of
-    the same discrete Lagrangian applied to its start (`_exact_increments`, long double). The
+    the same discrete Lagrangian applied to its start (`rounding_bias`, long double). The
     mean of the energy change that rounding adds per step is the drift rate; Brouwer's law
     needs it to vanish (against its standard error), leaving a random walk."""
     problem = problems.harmonic_oscillator()
@@ -328,11 +292,6 @@ def energy_bias(steps: int, members: int) -> None:
     omega = (k / m) ** 0.5
     amplitude = float(problem.y0[0][0])
     phases = 2 * np.pi * (np.arange(members) + 0.1234) / members
-    ld = np.longdouble
-
-    def energy(q, p):
-        return p.astype(ld) ** 2 / (2 * ld(m)) + ld(k) * q.astype(ld) ** 2 / 2
-
     print(f"\nenergy bias per step: oscillator, h = {h}, CGVI(7) uncompensated, {members} "
           f"trajectories of {steps} steps; mean and standard error over all steps of "
           "(E(end) - E(exact map of start)) / E0, in units of eps")
@@ -360,13 +319,8 @@ def energy_bias(steps: int, members: int) -> None:
             sol = run(q0, p0)
             q = np.asarray(sol.ys[0])[:, 0]
             p = np.asarray(sol.ys[1])[:, 0]
-            dq, dp = _exact_increments(span, ctx, q[:-1], p[:-1], m, k)
-            exact_q = q[:-1].astype(ld) + dq
-            exact_p = p[:-1].astype(ld) + dp
-            e0 = energy(q[:1], p[:1])[0]
-            changes.append(np.asarray((energy(q[1:], p[1:]) - energy(exact_q, exact_p)) / e0,
-                                      np.float64))
-        c = np.concatenate(changes) / eps
+            changes.append(rounding_bias.energy_bias(q, p, span, ctx.weights, h, m, k))
+        c = np.concatenate(changes)
         mean, se = float(np.mean(c)), float(np.std(c) / np.sqrt(c.size))
         print(f"| {name} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} | "
               f"{float(np.sqrt(np.mean(c**2))):.2f} | {mean * steps * eps:+.1e} |", flush=True)

@@ -104,6 +104,9 @@ class FixedPointIteration(RoundoffNewton):
       frequency `ω`, and slower where `M` or the forces depend on the velocities. It needs
       `M` invertible (a regular Lagrangian); a degenerate one fails the step. With `refresh`,
       a slow or stalled update switches the solve to the full Jacobian (Newton's update).
+      Give it `ftol=0`: a linearly converging iteration stopped at a tolerance leaves an
+      error of about that tolerance that is a fixed function of the state, a bias that
+      `confirm` cannot remove, and the energy drifts (see the benchmarks page).
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 

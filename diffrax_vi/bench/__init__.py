@@ -9,6 +9,8 @@
 - `report`: markdown tables and PNG figures (matplotlib) from the rows.
 - `suites`: the published configurations; `python -m diffrax_vi.bench --help` runs them.
 - `seed_quality`: the OGA seed on its own (no integrator), over every configuration.
+- `rounding_bias`: the oscillator's projected step solved exactly (long double), to measure
+  the energy change rounding adds per step.
 """
 
 from .harness import (

@@ -94,6 +94,7 @@ __all__ = [
 VARIATIONAL: dict[str, Callable[[], diffrax.AbstractSolver]] = {
     "CGVI(7) round-off": lambda: CGVI(7, root_finder=RoundoffNewton(ftol=0.0)),
     "CGVI(7)": lambda: CGVI(7),
+    "CGVI(7) chord": lambda: CGVI(7, root_finder=FixedPointIteration(ftol=1.0)),
     "CGVI(7) chord round-off": lambda: CGVI(7, root_finder=FixedPointIteration(ftol=0.0)),
     "CGVI(7) kinetic round-off": lambda: CGVI(
         7, root_finder=FixedPointIteration(ftol=0.0, matrix="kinetic")
