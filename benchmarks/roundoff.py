@@ -113,6 +113,10 @@ def growth_configs():
             7, compensated=False, root_finder=dvi.RoundoffNewton(ftol=0.0)
         ),
         "NetworkVI tanh 10 (default)": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
+        "NetworkVI tanh 10, uncompensated": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
+                                                          compensated=False),
+        "NetworkVI tanh 10, confirm": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
+                                                    root_finder=dvi.RoundoffNewton(confirm=True)),
     }
 
 
@@ -278,21 +282,43 @@ def bias_configs():
         "chord, ftol 1": dict(root_finder=fp(ftol=1.0)),
         "chord, ftol 0": dict(root_finder=fp(ftol=0.0)),
         "kinetic, ftol 0": dict(root_finder=fp(ftol=0.0, matrix="kinetic")),
+        "NetworkVI (tanh 10, GL8): default (ftol 64, without confirm)": dict(network=True),
+        "NetworkVI: ftol 64, confirm": dict(network=True, root_finder=rf(ftol=64.0)),
+        "NetworkVI: ftol 0": dict(network=True, root_finder=rf(ftol=0.0)),
     }
+
+
+def _bias_solver(options):
+    options = dict(options)
+    if options.pop("network", False):
+        return dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
+                             compensated=False, **options)
+    return dvi.CGVI(7, compensated=False, **options)
+
+
+def _span(solver, ctx):
+    """The step's (compile-time constant) span."""
+    form = solver.formulation
+    if isinstance(solver.basis, dvi.ShallowNetBasis):
+        hidden = form.hidden.parameters(solver.basis, 1, jnp.float64)
+    else:
+        hidden = jnp.zeros((solver.basis.num_params(), 1))
+    return form.span(hidden, ctx)
 
 
 def energy_bias(steps: int, members: int) -> None:
     """Where the energy drift comes from: along `members` oscillator trajectories of `steps`
-    uncompensated `CGVI(7)` steps (h = 0.5), each step's end is compared with the exact map of
-    the same discrete Lagrangian applied to its start (`rounding_bias`, long double). The
-    mean of the energy change that rounding adds per step is the drift rate; Brouwer's law
-    needs it to vanish (against its standard error), leaving a random walk."""
+    uncompensated `CGVI(7)` (or default network) steps (h = 0.5), each step's end is
+    compared with the exact map of the same discrete Lagrangian applied to its start
+    (`rounding_bias`, long double). The mean of the energy change that rounding adds per
+    step is the drift rate; Brouwer's law needs it to vanish (against its standard error),
+    leaving a random walk."""
     problem = problems.harmonic_oscillator()
     h, m, k = 0.5, 1.0, 0.5
     omega = (k / m) ** 0.5
     amplitude = float(problem.y0[0][0])
     phases = 2 * np.pi * (np.arange(members) + 0.1234) / members
-    print(f"\nenergy bias per step: oscillator, h = {h}, CGVI(7) uncompensated, {members} "
+    print(f"\nenergy bias per step: oscillator, h = {h}, uncompensated, {members} "
           f"trajectories of {steps} steps; mean and standard error over all steps of "
           "(E(end) - E(exact map of start)) / E0, in units of eps")
     print("| root finder | mean | standard error | mean / standard error | "
@@ -300,10 +326,9 @@ def energy_bias(steps: int, members: int) -> None:
     print("|---|---|---|---|---|---|")
     eps = float(np.finfo(np.float64).eps)
     for name, options in bias_configs().items():
-        solver = dvi.CGVI(7, compensated=False, **options)
+        solver = _bias_solver(options)
         ctx = solver._context(problem.term, 0.0, h, problem.y0, problem.args)
-        span = solver.formulation.span(
-            jnp.zeros((solver.basis.num_params(), 1)), ctx)
+        span = _span(solver, ctx)
 
         def run(q, p, solver=solver):
             return diffrax.diffeqsolve(

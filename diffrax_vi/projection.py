@@ -47,7 +47,7 @@ from .ansatz.shallow import ShallowNetBasis
 from .degenerate import first_order_end_correction
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
 from .lazy import unless_all_skip
-from .linalg import _work_dtype
+from .linalg import _work_dtype, solve
 
 __all__ = [
     "AbstractHiddenLayer",
@@ -578,10 +578,6 @@ class _NewtonState(eqx.Module):
     restarted: Array
 
 
-class _NewtonLUState(_NewtonState):
-    lu: tuple[Array, Array]  # the last Jacobian's LU factors, for a `confirm` update
-
-
 class RoundoffNewton(optx.AbstractRootFinder):
     """Newton's method for a square system with an isolated root, run to round-off.
 
@@ -676,11 +672,8 @@ class RoundoffNewton(optx.AbstractRootFinder):
         # Never converged at the start: in low precision the tolerance can be as large as the
         # start's residual, and a step must make at least one Newton update.
         no = jnp.array(False)
-        size = ravel_pytree(y)[0].shape[0]
-        work = _work_dtype(flat.dtype)
-        lu = (jnp.zeros((size, size), work), jnp.zeros(size, jnp.int32))
-        return _NewtonLUState(flat, inf, no, no, jnp.array(0, jnp.int32),
-                              jnp.array(0, jnp.int32), no, lu)
+        return _NewtonState(flat, inf, no, no, jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
+                            no)
 
     def step(self, fn, y, args, options, state, tags):
         del tags
@@ -692,25 +685,8 @@ class RoundoffNewton(optx.AbstractRootFinder):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
 
+        d = solve(self._jacobian(fn, y, args, options).astype(dtype), -state.f)
         fmax = jnp.max(jnp.abs(state.f))
-        work = _work_dtype(dtype)
-
-        def factor(_):
-            jac = self._jacobian(fn, y, args, options)
-            return jax.scipy.linalg.lu_factor(jac.astype(work))
-
-        if self.confirm:
-            # The update that confirms a solve already at `ftol` starts within √eps of the
-            # root: the last Jacobian serves (a branch; under vmap both sides run).
-            pending = (
-                (fmax <= self._tolerance("ftol", dtype) * scale)
-                & (state.iterations > 0)
-                & jnp.isfinite(state.step_norm)  # not right after a restart
-            )
-            lu = jax.lax.cond(pending, lambda _: state.lu, factor, None)
-        else:
-            lu = factor(None)
-        d = jax.scipy.linalg.lu_solve(lu, -state.f.astype(work)).astype(dtype)
         near = fmax <= self._tolerance("floor", dtype) * scale
         f_full, aux_full = residual(flat_y + d)
 
@@ -767,8 +743,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
             converged = converged & ~give_up
             at_floor = at_floor & ~give_up
             restarted = restarted | give_up
-        state = _NewtonLUState(f_new, step_norm, converged, at_floor, stalls, iterations,
-                               restarted, lu)
+        state = _NewtonState(f_new, step_norm, converged, at_floor, stalls, iterations, restarted)
         return unravel(new), state, aux
 
     def terminate(self, fn, y, args, options, state, tags):

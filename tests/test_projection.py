@@ -46,7 +46,7 @@ def residual_scale(y0):
 def test_oscillator_to_round_off_in_one_iteration(activation):
     # A quadratic Lagrangian makes the projected equations linear: one Newton update solves
     # them, and the residual left is rounding (issue 27: max error <= 2e-14, final <= 1e-14);
-    # a second update confirms it (`RoundoffNewton(confirm=True)`, the default).
+    # the network's default root finder does not confirm it (`confirm=False`).
     problem = problems.harmonic_oscillator()
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(activation, 10), dvi.GaussLegendre(8),
@@ -58,7 +58,8 @@ def test_oscillator_to_round_off_in_one_iteration(activation):
     q_ref, _ = problem.reference(np.asarray(sol.ts[-1:]))
     assert abs(float(sol.ys[0][-1, 0]) - q_ref[0, 0]) / abs(q_ref[0, 0]) <= 1e-14
     state = sol.solver_state
-    assert np.all(np.asarray(state.iteration_log) == 2)
+    assert np.all(np.asarray(state.iteration_log) == 1)
+    assert not solver.root_finder.confirm
     eps = float(jnp.finfo(jnp.float64).eps)
     assert float(state.report.residual) <= 64 * eps * residual_scale(problem.y0)
 
@@ -413,7 +414,7 @@ def test_first_seed_layer_is_one_compiled_path_for_vmap_and_loop():
     np.testing.assert_allclose(np.asarray(batched.ys[0]), loop, rtol=0, atol=1e-14)
     steps = len(problem.ts) - 1
     assert np.all(np.asarray(batched.solver_state.warm_starts) == steps - 1)
-    assert np.all(np.asarray(batched.solver_state.max_iterations) == 2)  # solve, confirm
+    assert np.all(np.asarray(batched.solver_state.max_iterations) == 1)
     sol = run(problem.y0)
     assert max_relative_error(problem, sol) <= 1e-11
 

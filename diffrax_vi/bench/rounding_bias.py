@@ -38,10 +38,12 @@ def _solve(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 def exact_increments(span, weights, h: float, q0: np.ndarray, p0: np.ndarray, m: float,
                      k: float) -> tuple[np.ndarray, np.ndarray]:
     """`(Δq, Δp)` in long double of the one-coordinate oscillator's projected step
-    (`VariableProjection`'s equations, every direction live) from the states `q0`, `p0`
-    (`(N,)`), for the float64 `span` (a `ProjectedSpan`), quadrature `weights` and step `h`."""
+    (`VariableProjection`'s equations; a direction that is not live is pinned to zero) from
+    the states `q0`, `p0` (`(N,)`), for the float64 `span` (a `ProjectedSpan`), quadrature
+    `weights` and step `h`."""
     gq, gv, g0, gd = (np.asarray(a, np.float64)[0].astype(_LD)
                       for a in (span.gq, span.gv, span.g0, span.gd))
+    live = np.asarray(span.live)[:, 0]
     b = np.asarray(weights, np.float64).astype(_LD)
     h, m, k = _LD(h), _LD(m), _LD(k)
     size = gq.shape[1]
@@ -56,6 +58,9 @@ def exact_increments(span, weights, h: float, q0: np.ndarray, p0: np.ndarray, m:
     rhs = np.zeros((size + 1, q0.shape[0]), _LD)
     rhs[:size] = -(gd[:, None] * p0[None]
                    + h * k * np.einsum("j,jk->k", b, gq)[:, None] * q0[None])
+    a[:size][~live] = 0
+    a[np.flatnonzero(~live), np.flatnonzero(~live)] = 1
+    rhs[:size][~live] = 0
     z = _solve(a, rhs)
     return gd @ z[:size], z[size]
 
