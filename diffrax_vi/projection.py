@@ -441,11 +441,19 @@ class VariableProjection(FreeEndpoints):
             + jnp.einsum("j,djk,jde,ejl->kdle", b, bv, pq, a)
             + jnp.einsum("j,djk,jde,ejl->kdle", b / h, bv, pv, bv)
         )
+        return self._assemble(coupling, span, dtype)
+
+    @staticmethod
+    def _assemble(coupling: Array, span: ProjectedSpan, dtype) -> Array:
+        """The dense Jacobian of the step's equations from the coupling of the curve's
+        coordinates (`(k, D, k, D)`, the action's second derivative), in the order of
+        `ravel_pytree`: pinned directions get identity rows, `Δp` enters through `g₁`, and
+        continuity through `−g₀`."""
+        k, dim = coupling.shape[:2]
         n = k * dim
         eye = jnp.eye(dim, dtype=dtype)
-        jcc = -coupling.reshape(n, n)
         live = span.live.reshape(n)
-        jcc = jnp.where(live[:, None], jcc, jnp.eye(n, dtype=dtype))
+        jcc = jnp.where(live[:, None], -coupling.reshape(n, n), jnp.eye(n, dtype=dtype))
         jcp = jnp.where(live[:, None], jnp.einsum("dk,de->kde", span.g1, eye).reshape(n, dim), 0)
         jpc = -jnp.einsum("dl,de->dle", span.g0, eye).reshape(dim, n)
         top = jnp.concatenate([jcc, jcp], axis=1)
@@ -498,19 +506,9 @@ class VariableProjection(FreeEndpoints):
             top = jnp.concatenate([stiff, jnp.where(live, g1, 0)[:, None]], axis=1)
             bottom = jnp.concatenate([-g0, jnp.zeros((1,), dtype)])[None]
             block = jnp.concatenate([top, bottom], axis=0)
-            return KineticInverse(mass, jnp.linalg.inv(mass), jnp.linalg.inv(block), True)
+            return KineticInverse(jnp.linalg.inv(block), mass, jnp.linalg.inv(mass))
         coupling = jnp.einsum("j,djk,de,ejl->kdle", b / h, span.gv, mass, span.gv)
-        n = k * dim
-        eye = jnp.eye(dim, dtype=dtype)
-        live = span.live.reshape(n)
-        jcc = jnp.where(live[:, None], -coupling.reshape(n, n), jnp.eye(n, dtype=dtype))
-        jcp = jnp.where(live[:, None], jnp.einsum("dk,de->kde", span.g1, eye).reshape(n, dim), 0)
-        jpc = -jnp.einsum("dl,de->dle", span.g0, eye).reshape(dim, n)
-        dense = jnp.concatenate([
-            jnp.concatenate([jcc, jcp], axis=1),
-            jnp.concatenate([jpc, jnp.zeros((dim, dim), dtype)], axis=1),
-        ])
-        return KineticInverse(mass, mass, jnp.linalg.inv(dense), False)
+        return KineticInverse(jnp.linalg.inv(self._assemble(coupling, span, dtype)))
 
     def dense_position(self, basis, theta, q0, q1, tau):
         """The network curve plus linear terms that make it hit `q_n` at `τ = 0` and
@@ -547,19 +545,19 @@ class KineticInverse(eqx.Module):
     (`VariableProjection.kinetic_inverse`), applied to a residual `(r, c)` (`(k, D)`, `(D,)`)
     by calling it.
 
-    With `uniform`, the kinetic Jacobian is `[[S ⊗ M, g₁ ⊗ I], [−g₀ᵀ ⊗ I, 0]]`; multiplying
-    its first rows by `M⁻¹` and writing `Δp = M Δp'` turns it into `A ⊗ I` with the small
-    `A = [[S, g₁], [−g₀ᵀ, 0]]`, so `block` holds `A⁻¹`. Otherwise `block` is the dense
-    inverse (in the order of `ravel_pytree`)."""
+    For a span that is the same in every coordinate the kinetic Jacobian is
+    `[[S ⊗ M, g₁ ⊗ I], [−g₀ᵀ ⊗ I, 0]]`; multiplying its first rows by `M⁻¹` and writing
+    `Δp = M Δp'` turns it into `A ⊗ I` with the small `A = [[S, g₁], [−g₀ᵀ, 0]]`: then `block`
+    holds `A⁻¹` and `mass`, `mass_inv` hold `M` and `M⁻¹`. Otherwise `block` is the dense
+    inverse (in the order of `ravel_pytree`) and the other two are `None`."""
 
-    mass: Array
-    mass_inv: Array
     block: Array
-    uniform: bool = eqx.field(static=True)
+    mass: Array | None = None
+    mass_inv: Array | None = None
 
     def __call__(self, f: tuple[Array, Array]) -> tuple[Array, Array]:
         r, c = (x.astype(self.block.dtype) for x in f)
-        if self.uniform:
+        if self.mass is not None:
             rhs = jnp.concatenate([r @ self.mass_inv.T, c[None]], axis=0)
             out = self.block @ rhs
             return out[:-1], out[-1] @ self.mass.T

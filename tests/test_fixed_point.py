@@ -394,3 +394,14 @@ def test_kinetic_iteration_stays_in_its_dtype(dtype):
     q_ref, _ = problem.reference(np.array([2.0]))
     eps = float(jnp.finfo(dtype).eps)
     assert np.max(np.abs(np.asarray(sol.ys[0][-1], np.float64) - q_ref[0])) <= 64 * eps
+
+
+def test_confirm_is_checked_and_inherited():
+    assert dvi.RoundoffNewton().confirm and FixedPointIteration().confirm
+    assert not dvi.RoundoffNewton(confirm=False).confirm
+    for cls in (dvi.RoundoffNewton, FixedPointIteration):
+        with pytest.raises(TypeError, match="confirm"):
+            cls(confirm=1)
+    # the network's default root finder does not confirm; CGVI's does
+    assert not network(None).root_finder.confirm
+    assert dvi.CGVI(6).root_finder.confirm
