@@ -489,14 +489,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
-        from .validation import check_times
+        from .validation import check_times, refuse_nonfinite_times
 
-        # Concrete times (manual stepping, or `jax.disable_jit`) are checked at trace time.
-        # Inside `diffeqsolve` they are traced by now, and a run-time refusal here would be a
-        # host callback in the program (never written to JAX's persistent compilation cache).
-        # `step` fails a zero or NaN step with `RESULTS.vi_step_size_invalid` instead; a NaN
-        # `t0` or `t1` makes diffrax take no step at all (see the failures page).
+        # Concrete times (manual stepping) are refused at trace time. Inside `diffeqsolve` they
+        # are traced by now and are checked when the program runs: a NaN time would make
+        # diffrax take no step and report success. The checked `t0` reaches `report.t`, which
+        # every step reads, so the check stays in the program.
         check_times(t0=t0, t1=t1)
+        t0 = refuse_nonfinite_times(t0, t1)
         ctx = self._context(terms, t0, t1, y0, args)
         seed = self._seeding.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
@@ -676,9 +676,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             result,
             STEP_FAILURES["vi_step_nonfinite"],
         )
-        result = diffrax.RESULTS.where(
-            (ctx.h == 0) | ~jnp.isfinite(ctx.h), STEP_FAILURES["vi_step_size_invalid"], result
-        )
+        # `state.report.t` (the previous step's time, or the checked `t0`) is read here so that
+        # `init`'s run-time check of the times is part of every solve's program.
+        invalid = (ctx.h == 0) | ~jnp.isfinite(ctx.h) | ~jnp.isfinite(state.report.t)
+        result = diffrax.RESULTS.where(invalid, STEP_FAILURES["vi_step_size_invalid"], result)
         scale = _residual_scale(ctx)
         constraint = (primary_constraint_violation(ctx, q1, p1) / scale).astype(ctx.q0.dtype)
         first = jnp.where(jnp.isnan(state.first_constraint), constraint, state.first_constraint)

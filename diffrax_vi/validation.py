@@ -2,7 +2,9 @@
 
 They run at trace time (shapes, dtypes and container types are static), so a malformed input is
 refused with one readable `ValueError` before any JAX code trips over it. They are called by the
-terms' `vf` (which diffrax evaluates before any solver sees the state) and by `NetworkVI`.
+terms' `vf` (which diffrax evaluates before any solver sees the state) and by `NetworkVI`. Times
+are values, which `diffeqsolve` has traced before any solver sees them: `refuse_nonfinite_times`
+checks them when the program runs.
 """
 
 from __future__ import annotations
@@ -10,12 +12,13 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-__all__ = ["check_state", "check_times", "describe_value"]
+__all__ = ["check_state", "check_times", "describe_value", "refuse_nonfinite_times"]
 
 
 
@@ -95,6 +98,26 @@ def check_times(**times: Any) -> None:
                 f"{name} must be a finite time; got {name} = {number!r}. A NaN or infinite "
                 "t0, t1 or dt0 gives no meaningful step."
             )
+
+
+NONFINITE_TIME_MESSAGE = (
+    "t0 and t1 must be finite times: diffeqsolve was given a NaN or infinite t0 or t1 (or a NaN "
+    "dt0), which gives no meaningful step. Check the times where they are computed."
+)
+
+
+def refuse_nonfinite_times(t0: Any, t1: Any) -> Any:
+    """`t0`, with a run-time error (equinox's `error_if`) where `t0` or `t1` is NaN or infinite.
+
+    `NetworkVI.init` sees the solve's `t0` and the end of its first step (diffrax clips that to
+    the solve's `t1`, so a NaN `t1` or `dt0` shows there); without this a NaN time makes
+    `diffeqsolve` take no step and report success. The returned `t0` must be used for the check
+    to stay in the program. It is a host callback, unless `EQX_ON_ERROR=nan` or `off` is set
+    (then a NaN time takes no step, as without the check).
+    """
+    t0 = jnp.asarray(t0)
+    bad = ~(jnp.isfinite(t0) & jnp.isfinite(jnp.asarray(t1)))
+    return eqx.error_if(t0, bad, NONFINITE_TIME_MESSAGE)
 
 
 def _concrete_float(value: Any) -> float | None:

@@ -152,21 +152,44 @@ def test_traced_times_are_left_to_run_time():
     jax.jit(lambda t: check_times(t0=t) or t)(jnp.asarray(0.0))
 
 
-def test_what_a_nan_time_does_inside_diffeqsolve():
-    """The failures page documents this: diffeqsolve traces the times before any solver or
-    term sees them, and a NaN t0 or t1 makes diffrax's loop take no step at all, so the solve
-    returns y0 as a success (refusing it at run time would need a host callback). A NaN dt0
-    fails the first step with vi_step_size_invalid."""
-    nan = jnp.asarray(jnp.nan)
-    for t0, t1 in ((nan, jnp.asarray(0.2)), (jnp.asarray(0.0), nan)):
-        sol = diffrax.diffeqsolve(TERM, cgvi(), t0, t1, jnp.asarray(0.1), (Q, P), throw=False)
-        assert int(sol.stats["num_steps"]) == 0 and sol.result == diffrax.RESULTS.successful
-    inf = jnp.asarray(jnp.inf)
-    for t0, t1, dt0 in ((0.0, 0.2, nan), (-inf, 0.2, 0.1), (inf, 0.2, -0.1)):
-        sol = diffrax.diffeqsolve(TERM, cgvi(), t0, t1, dt0, (Q, P), throw=False)
-        assert dvi.failure_kind(sol.result) == "step_size"
-    # An infinite dt0 is clipped by ConstantStepSize to one step over [t0, t1].
-    sol = diffrax.diffeqsolve(TERM, cgvi(), 0.0, 0.2, inf, (Q, P), throw=False)
+@pytest.mark.parametrize(
+    "t0, t1, dt0",
+    [
+        (jnp.nan, 0.2, 0.1), (0.0, jnp.nan, 0.1), (0.0, 0.2, jnp.nan),
+        (-jnp.inf, 0.2, 0.1), (jnp.inf, 0.2, -0.1),
+    ],
+)
+def test_nonfinite_times_inside_diffeqsolve_are_refused_at_run_time(t0, t1, dt0):
+    """diffeqsolve traces the times before any solver sees them, so `NetworkVI.init` checks them
+    when the program runs: without it a NaN t0 or t1 makes diffrax take no step and report
+    success. Refused with throw=False too, for arrays and for Python numbers."""
+    message = "t0 and t1 must be finite times"
+    for kind in (float, jnp.asarray):
+        with pytest.raises(Exception, match=message):
+            sol = diffrax.diffeqsolve(
+                TERM, cgvi(), kind(t0), kind(t1), kind(dt0), (Q, P), throw=False
+            )
+            sol.ys[0].block_until_ready()
+
+
+def test_a_nan_time_in_one_lane_of_a_vmap_is_refused():
+    def final(t1):
+        sol = diffrax.diffeqsolve(TERM, cgvi(), 0.0, t1, 0.1, (Q, P), throw=False)
+        return sol.ys[0][-1]
+
+    assert np.all(np.isfinite(np.asarray(jax.vmap(final)(jnp.array([0.2, 0.3])))))
+    with pytest.raises(Exception, match="t0 and t1 must be finite times"):
+        jax.vmap(final)(jnp.array([0.2, jnp.nan])).block_until_ready()
+
+
+def test_what_other_odd_times_do_inside_diffeqsolve():
+    """The failures page's table: a zero dt0 fails the first step with vi_step_size_invalid, an
+    infinite t1 steps until max_steps, an infinite dt0 is clipped to one step over [t0, t1]."""
+    sol = diffrax.diffeqsolve(TERM, cgvi(), 0.0, 0.2, jnp.asarray(0.0), (Q, P), throw=False)
+    assert dvi.failure_kind(sol.result) == "step_size"
+    sol = diffrax.diffeqsolve(TERM, cgvi(), 0.0, jnp.inf, 0.1, (Q, P), throw=False, max_steps=4)
+    assert dvi.failure_kind(sol.result) == "max_steps"
+    sol = diffrax.diffeqsolve(TERM, cgvi(), 0.0, 0.2, jnp.inf, (Q, P), throw=False)
     assert int(sol.stats["num_steps"]) == 1 and sol.result == diffrax.RESULTS.successful
 
 

@@ -50,29 +50,54 @@ def test_hermite_first_strategy_on_another_label_grid():
     assert traj.first.substeps == 20 and dvi.HermiteExtrapolation().first is None
 
 
-@pytest.mark.parametrize("dt0", [0.0, float("nan")])
-def test_zero_or_nan_dt0(dt0):
-    # An array, so both cases share one compilation (a Python float is static to the jit).
-    # The first step fails with its own result (no host callback in the program, so it can
-    # be cached); `throw=True` raises with its message.
-    sol = solve(dt0=jnp.asarray(dt0), throw=False, max_steps=8)
+def test_zero_dt0():
+    # The first step fails with its own result; `throw=True` raises with its message.
+    sol = solve(dt0=jnp.asarray(0.0), throw=False, max_steps=8)
     assert sol.result == diffrax.RESULTS.vi_step_size_invalid
     assert dvi.failure_kind(sol.result) == "step_size"
     assert bool(jnp.all(jnp.isnan(sol.ys[0])))
     with pytest.raises(Exception, match="step size must be finite and non-zero"):
-        solve(dt0=jnp.asarray(dt0), max_steps=8).ys[0].block_until_ready()
+        solve(dt0=jnp.asarray(0.0), max_steps=8).ys[0].block_until_ready()
 
 
-def test_solve_program_has_no_host_callback():
-    """A `throw=False` solve compiles to a program without host callbacks, which JAX's
-    persistent compilation cache needs (it skips programs with callbacks)."""
-    import jax
+_CALLBACK_PROBE = """
+import diffrax, jax
+jax.config.update("jax_enable_x64", True)
+import diffrax_vi as dvi
+from diffrax_vi import problems
 
-    def run(y0):
-        return solve(y0=y0, throw=False).ys
+HO = problems.harmonic_oscillator()
+solver = dvi.CGVI(3)
 
-    text = jax.jit(run).lower(HO.y0).as_text()
-    assert "callback" not in text
+def run(y0, t0):
+    return diffrax.diffeqsolve(HO.term, solver, t0, 0.2, 0.1, y0, throw=False)
+
+print("callback" in jax.jit(run).lower(HO.y0, 0.0).as_text())
+sol = run(HO.y0, float("nan"))
+print(int(sol.stats["num_steps"]), sol.result == diffrax.RESULTS.successful)
+"""
+
+
+@pytest.mark.parametrize("on_error, has_callback", [("raise", "True"), ("nan", "False")])
+def test_time_check_is_the_only_host_callback_of_a_throw_false_solve(on_error, has_callback):
+    """With equinox's default `EQX_ON_ERROR=raise` the run-time check of the times is a host
+    callback; with `EQX_ON_ERROR=nan` a `throw=False` solve has none (JAX's persistent
+    compilation cache needs that), and a NaN time then takes no step, as the choosing page says."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, EQX_ON_ERROR=on_error, JAX_PLATFORMS="cpu")
+    run = subprocess.run(
+        [sys.executable, "-c", _CALLBACK_PROBE], env=env, capture_output=True, text=True,
+        timeout=300,
+    )
+    if on_error == "raise":
+        assert "t0 and t1 must be finite times" in run.stderr
+        assert run.stdout.split() == [has_callback]
+    else:
+        assert run.returncode == 0, run.stderr
+        assert run.stdout.split() == [has_callback, "0", "True"]
 
 
 def test_negative_dt0():
