@@ -140,7 +140,7 @@ def energy_growth_ensemble(steps: int, members: int, only: str | None = None) ->
     print(f"\noscillator ensemble ({members} phases), h = {h}, {steps} steps: RMS over the "
           "members of the relative energy error")
     print("| solver | " + " | ".join(f"{d:g} steps" for d in decades)
-          + " | growth exponent (10^3 on) | us per step |")
+          + " | growth exponent (10^3 on, ± bootstrap SE) | us per step |")
     print("|---|" + "---|" * (len(decades) + 2))
     for name, solver in growth_configs().items():
         if only and only not in name:
@@ -166,10 +166,19 @@ def energy_growth_ensemble(steps: int, members: int, only: str | None = None) ->
         done = np.asarray(ts) / h
         at = [rms[np.argmin(np.abs(done - d))] for d in decades]
         tail = done >= 1000
-        slope = np.polyfit(np.log(done[tail]), np.log(np.maximum(rms[tail], 1e-18)), 1)[0]
+        slope = _rms_growth_exponent(rel[:, tail], done[tail])
+        # its standard error: the spread of the fit over members drawn again with replacement
+        draws = np.random.default_rng(0).integers(0, members, (200, members))
+        spread = np.std([_rms_growth_exponent(rel[d][:, tail], done[tail]) for d in draws])
         ok = bool(np.all(result))
         print(f"| {name}{'' if ok else ' (failed)'} | " + " | ".join(f"{a:.1e}" for a in at)
-              + f" | {slope:.2f} | {us:.1f} |", flush=True)
+              + f" | {slope:.2f} ± {spread:.2f} | {us:.1f} |", flush=True)
+
+
+def _rms_growth_exponent(rel, done):
+    """Slope of log RMS (over the rows of `rel`) against log steps."""
+    rms = np.sqrt(np.mean(rel**2, axis=0))
+    return np.polyfit(np.log(done), np.log(np.maximum(rms, 1e-18)), 1)[0]
 
 
 def compensation() -> None:
