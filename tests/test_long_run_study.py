@@ -98,8 +98,14 @@ def test_cli_parses_long_run(monkeypatch, tmp_path):
         "CGVI(7) round-off", "CGVI(7)", "CGVI(7) chord", "CGVI(7) chord round-off",
         "CGVI(7) kinetic round-off", "CGVI(7) reference form"
     ]
-    assert seen["full"] is False
+    assert seen["full"] is False and seen["spans"] is None
     assert seen["command"].startswith("python -m diffrax_vi.bench long-run --quick")
+    cli_main(["long-run", "--full", "--spans", "1000", "--problems", "harmonic_oscillator",
+              "kepler_e0.5", "--out", out, "--no-progress"])
+    assert seen["full"] is True
+    assert seen["spans"] == {"harmonic_oscillator": (1000,), "kepler_e0.5": (1000,)}
+    with pytest.raises(SystemExit, match="--spans"):
+        cli_main(["long-run", "--spans", "0", "--out", out, "--no-progress"])
     with pytest.raises(SystemExit):
         cli_main(["long-run", "--problems", "nope", "--out", out, "--no-progress"])
     with pytest.raises(SystemExit):

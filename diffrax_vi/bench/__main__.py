@@ -372,6 +372,9 @@ def main(argv=None) -> None:
                         help="substrings of solver names to keep (stability: of "
                              "LevenbergMarquardt, RegularisedNewton, projection; default the "
                              "first two)")
+    parser.add_argument("--spans", type=int, nargs="+", default=None,
+                        help="long-run: spans in periods for every problem, instead of the "
+                             "quick (100) or full (10^3 to 10^5) ones")
     parser.add_argument("--repeats", type=int, default=None,
                         help="timing repeats after compilation (quick 2, full 5)")
     parser.add_argument("--long-steps", type=_long_steps, default=None,

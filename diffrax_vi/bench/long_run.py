@@ -995,8 +995,12 @@ def select(args) -> dict[str, Any]:
         raise SystemExit(f"no variational solver matches {args.solvers}; "
                          f"choose from {list(VARIATIONAL)}")
     full = bool(args.full)
+    spans = getattr(args, "spans", None)
+    if spans is not None and (not spans or min(spans) < 1):
+        raise SystemExit(f"--spans must be whole numbers of periods >= 1, got {spans}")
     return dict(
         problems={n: PROBLEMS[n] for n in names}, full=full, solvers=solvers,
+        spans=None if spans is None else {n: tuple(spans) for n in names},
         repeats=args.repeats or (5 if full else 3), budget_s=10.0 if full else 2.0,
         max_run_s=900.0 if full else 60.0, reference_budget_s=1800.0 if full else 60.0,
     )
@@ -1007,8 +1011,8 @@ def cli(args, command: str = "") -> list[dict[str, Any]]:
     import sys
 
     kwargs = select(args)
-    spans = {n: (c.full_spans if kwargs["full"] else c.quick_spans)
-             for n, c in kwargs["problems"].items()}
+    spans = kwargs["spans"] or {n: (c.full_spans if kwargs["full"] else c.quick_spans)
+                                for n, c in kwargs["problems"].items()}
     rtols = FULL_RTOLS if kwargs["full"] else QUICK_RTOLS
     bar = None
     if not args.no_progress:
