@@ -13,7 +13,7 @@ relative to `1 + max(|q_n|, |p_n|)`, and 100 times as far as at the run's first 
 | `RESULTS.vi_step_stalled` | `"stalled"` | the residual stopped falling above the tolerance |
 | `RESULTS.vi_step_nonfinite` | `"nonfinite"` | NaN or inf in the residual or in the end state |
 | `RESULTS.vi_step_singular` | `"singular"` | the linear solve of an iteration broke down |
-| `RESULTS.vi_step_size_invalid` | `"step_size"` | the step is zero or not finite (`dt0`, `t0`) |
+| `RESULTS.vi_step_size_invalid` | `"step_size"` | the step is zero or not finite (a zero `dt0`) |
 | `RESULTS.vi_constraint_drift` | `"constraint_drift"` | end state off `p = ϑ(q)` (first order) |
 
 diffrax's own failures have kinds too (`"max_steps"`, `"max_rejected"`, `"dt_min"`), and so do
@@ -76,7 +76,7 @@ _MESSAGES = {
     ),
     "vi_step_size_invalid": (
         "diffrax_vi: the step size must be finite and non-zero (check dt0, t0 and t1: a zero "
-        "or NaN dt0, or an infinite t0, gives such a step)." + _WHERE
+        "dt0 gives such a step)." + _WHERE
     ),
     "vi_constraint_drift": (
         "diffrax_vi: an all-parameter network step of a Lagrangian linear in the velocities "
