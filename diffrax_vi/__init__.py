@@ -169,10 +169,10 @@ _LAZY = {
     "symbolic": ("diffrax_vi.symbolic", None),
     "compile_exprs": ("diffrax_vi.symbolic", "compile_exprs"),
     "sympy_activation": ("diffrax_vi.symbolic", "sympy_activation"),
-    "SymbolicAnsatz": ("diffrax_vi.ansatz.symbolic", "SymbolicAnsatz"),
-    "VISEBasis": ("diffrax_vi.ansatz.symbolic", "VISEBasis"),
-    "SympyLagrangianTerm": ("diffrax_vi.sympy_terms", "SympyLagrangianTerm"),
-    "sympy_lagrangian_term": ("diffrax_vi.sympy_terms", "sympy_lagrangian_term"),
+    "SymbolicAnsatz": ("diffrax_vi.symbolic.ansatz", "SymbolicAnsatz"),
+    "VISEBasis": ("diffrax_vi.symbolic.ansatz", "VISEBasis"),
+    "SympyLagrangianTerm": ("diffrax_vi.symbolic.terms", "SympyLagrangianTerm"),
+    "sympy_lagrangian_term": ("diffrax_vi.symbolic.terms", "sympy_lagrangian_term"),
 }
 
 

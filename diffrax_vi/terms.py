@@ -218,43 +218,6 @@ class LagrangianTerm(AbstractMechanicalTerm):
         v = self.velocity(t, q, p, args)
         return jnp.sum(p * v) - self(t, q, v, args)
 
-    @classmethod
-    def from_sympy(
-        cls,
-        lagrangian,
-        q_symbols,
-        v_symbols,
-        t=None,
-        params=(),
-        *,
-        velocity: Callable | None = None,
-        legendre_iterations: int | None = None,
-        cse: bool = True,
-    ) -> LagrangianTerm:
-        """Build a term from a sympy expression of the Lagrangian.
-
-        `L` and its derivatives (`∂L/∂v`, `∂L/∂q`, the Hessian `∂²L/∂v²` of the Legendre
-        inverse and the energy `v·∂L/∂v − L`) are differentiated by sympy and compiled to JAX
-        with `diffrax_vi.symbolic.compile_exprs` (shared subexpressions, constants in the
-        working dtype, cached per expression). The result is a `SympyLagrangianTerm`, a
-        `LagrangianTerm` with the same methods, usable by every solver that takes one.
-
-        See `diffrax_vi.sympy_terms.sympy_lagrangian_term` for the arguments; sympy is
-        imported only when this is called.
-        """
-        from .sympy_terms import sympy_lagrangian_term
-
-        return sympy_lagrangian_term(
-            lagrangian,
-            q_symbols,
-            v_symbols,
-            t,
-            params,
-            velocity=velocity,
-            legendre_iterations=legendre_iterations,
-            cse=cse,
-        )
-
 
 class IODETerm(AbstractMechanicalTerm):
     """A mechanical system given directly by its momentum and force maps.

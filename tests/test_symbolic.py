@@ -12,7 +12,6 @@ import sympy
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.ansatz.symbolic import SymbolicAnsatz, VISEBasis
 from diffrax_vi.oga.symmetry import MirrorPairs, SharedMirrorPairs
 from diffrax_vi.seeding.fit import InitialWeights, fit_problem
 from diffrax_vi.symbolic import (
@@ -23,6 +22,7 @@ from diffrax_vi.symbolic import (
     symbolic_shallow_evaluate,
     sympy_activation,
 )
+from diffrax_vi.symbolic.ansatz import SymbolicAnsatz, VISEBasis
 
 x, y = sympy.symbols("x y", real=True)
 

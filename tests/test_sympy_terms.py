@@ -1,4 +1,4 @@
-"""`LagrangianTerm.from_sympy` and the separable term pair for `diffrax.SemiImplicitEuler`."""
+"""`sympy_lagrangian_term` and the separable term pair for `diffrax.SemiImplicitEuler`."""
 
 import subprocess
 import sys
@@ -12,7 +12,7 @@ import pytest
 import sympy
 
 import diffrax_vi as dvi
-from diffrax_vi.sympy_terms import SympyLagrangianTerm, sympy_lagrangian_term
+from diffrax_vi.symbolic.terms import SympyLagrangianTerm, sympy_lagrangian_term
 
 jax.config.update("jax_enable_x64", True)
 
@@ -23,7 +23,7 @@ l1, l2, m1, m2, g, lam = sympy.symbols("l1 l2 m1 m2 g lam", positive=True)
 # -- the same systems in sympy and in jnp ----------------------------------------------------
 def _pendulum_sympy():
     lagrangian = m1 * l1**2 * v1**2 / 2 + m1 * g * l1 * sympy.cos(q1)
-    return dvi.LagrangianTerm.from_sympy(lagrangian, [q1], [v1], params=[l1, m1, g])
+    return dvi.sympy_lagrangian_term(lagrangian, [q1], [v1], params=[l1, m1, g])
 
 
 def _pendulum_jnp(t, q, v, args):
@@ -38,7 +38,7 @@ def _double_pendulum_sympy():
         + m2 * l1 * l2 * v1 * v2 * sympy.cos(q1 - q2)
     )
     potential = -(m1 + m2) * g * l1 * sympy.cos(q1) - m2 * g * l2 * sympy.cos(q2)
-    return dvi.LagrangianTerm.from_sympy(
+    return dvi.sympy_lagrangian_term(
         kinetic - potential, "q1 q2", "v1 v2", params="l1 l2 m1 m2 g"
     )
 
@@ -55,7 +55,7 @@ def _double_pendulum_jnp(t, q, v, args):
 
 def _henon_heiles_sympy():
     potential = (q1**2 + q2**2) / 2 + lam * (q1**2 * q2 - q2**3 / 3)
-    return dvi.LagrangianTerm.from_sympy(
+    return dvi.sympy_lagrangian_term(
         (v1**2 + v2**2) / 2 - potential, [q1, q2], [v1, v2], params=[lam]
     )
 
@@ -147,7 +147,7 @@ def test_time_dependent_lagrangian():
     # a parametrically driven oscillator L = v²/2 − (1 + ε sin ωt) q²/2
     eps, omega = sympy.symbols("eps omega")
     lagrangian = v1**2 / 2 - (1 + eps * sympy.sin(omega * t_)) * q1**2 / 2
-    sym = dvi.LagrangianTerm.from_sympy(lagrangian, [q1], [v1], t="t", params=[eps, omega])
+    sym = dvi.sympy_lagrangian_term(lagrangian, [q1], [v1], t="t", params=[eps, omega])
     assert sym.time == t_
 
     def fn(t, q, v, args):
@@ -191,7 +191,7 @@ def test_tsit5_matches_jnp_term():
 
 def test_network_vi_on_sympy_harmonic_oscillator():
     q, v, m, k = sympy.symbols("q v m k", real=True)
-    term = dvi.LagrangianTerm.from_sympy(m * v**2 / 2 - k * q**2 / 2, q, v, params=(m, k))
+    term = dvi.sympy_lagrangian_term(m * v**2 / 2 - k * q**2 / 2, q, v, params=(m, k))
     mass, stiffness = 2.0, 3.0
     q0, p0 = jnp.array([1.0]), jnp.array([0.5])
     ts = jnp.linspace(0.0, 1.0, 11)

@@ -96,7 +96,7 @@ def test_mixed_float_dtypes_with_float32_times_refused_in_diffeqsolve():
 def test_sympy_term_checks_the_number_of_coordinates():
     sympy = pytest.importorskip("sympy")
     q, v = sympy.symbols("q v")
-    term = dvi.LagrangianTerm.from_sympy(v**2 / 2 - q**2 / 4, [q], [v])
+    term = dvi.sympy_lagrangian_term(v**2 / 2 - q**2 / 4, [q], [v])
     with pytest.raises(ValueError, match=r"1 coordinates \['q'\].*shape \(1,\); got 2"):
         term.vf(0.0, (jnp.zeros(2), jnp.zeros(2)), None)
     with pytest.raises(ValueError, match="y0 = \\(q, p\\) must be a pair"):

@@ -11,9 +11,9 @@ import pytest
 import sympy
 
 import diffrax_vi as dvi
-from diffrax_vi.ansatz.symbolic import SymbolicAnsatz
 from diffrax_vi.seeding.fit import fit_problem
 from diffrax_vi.seeding.trajectory_fit import TrajectoryFit
+from diffrax_vi.symbolic.ansatz import SymbolicAnsatz
 
 t = sympy.Symbol("t")
 

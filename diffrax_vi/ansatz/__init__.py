@@ -1,4 +1,7 @@
-"""Trial trajectories on one step: `q_h(τ; θ)`, `τ ∈ [0, 1]` (networks, polynomials)."""
+"""Trial trajectories on one step: `q_h(τ; θ)`, `τ ∈ [0, 1]` (networks, polynomials).
+
+Ansätze written with sympy (`VISEBasis`, `SymbolicAnsatz`) live in `diffrax_vi.symbolic.ansatz`.
+"""
 
 from .base import AbstractBasis
 from .dense import DenseNetBasis
@@ -10,15 +13,4 @@ __all__ = [
     "DenseNetBasis",
     "LagrangeBasis",
     "ShallowNetBasis",
-    "SymbolicAnsatz",
-    "VISEBasis",
 ]
-
-
-def __getattr__(name):
-    # The symbolic ansatz needs sympy (slow to import): load it on first use.
-    if name in ("SymbolicAnsatz", "VISEBasis"):
-        from . import symbolic
-
-        return getattr(symbolic, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -21,7 +21,6 @@ from .fits import TruncatedSVD as TruncatedSVD
 from .fits import WeightedQR as WeightedQR
 from .fits import guarded_solve as guarded_solve
 from .fits import ridged_lstsq as ridged_lstsq
-from .greedy import OGAResult as OGAResult
 from .greedy import oga_fit as oga_fit
 from .presets import OGA1d as OGA1d
 from .presets import OGA1dNormalEquations as OGA1dNormalEquations
@@ -36,6 +35,7 @@ from .qr import pivoted_lstsq as pivoted_lstsq
 from .qr import qr_append as qr_append
 from .qr import qr_init as qr_init
 from .qr import upper_solve as upper_solve
+from .result import OGAResult as OGAResult
 from .selection import AbstractSelection as AbstractSelection
 from .selection import NormalizedProjection as NormalizedProjection
 from .selection import OrthogonalProjection as OrthogonalProjection

@@ -21,8 +21,8 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .dictionaries import BiasGrid1d
-from .greedy import OGAResult
 from .qr import lu_solve
+from .result import OGAResult
 
 __all__ = ["oga_reference_fit"]
 

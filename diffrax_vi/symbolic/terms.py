@@ -1,6 +1,6 @@
 """Lagrangian terms written as sympy expressions.
 
-`sympy_lagrangian_term` (also reachable as `LagrangianTerm.from_sympy`) takes a Lagrangian
+`sympy_lagrangian_term` takes a Lagrangian
 `L(t, q, v; params)` as a sympy expression, differentiates it with sympy and compiles `L`, the
 momentum and force `(∂L/∂v, ∂L/∂q)`, the Hessian `∂²L/∂v²` of the Legendre inverse and the
 energy `v·∂L/∂v − L` to JAX with `diffrax_vi.symbolic.compile_exprs`. The resulting
@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import sympy
 from jaxtyping import Array, PyTree
 
-from .linalg import solve
-from .symbolic import compile_exprs
-from .terms import LagrangianTerm
-from .validation import check_state
+from ..linalg import solve
+from ..terms import LagrangianTerm
+from ..validation import check_state
+from .codegen import compile_exprs
 
 __all__ = ["SympyLagrangianTerm", "sympy_lagrangian_term"]
 
@@ -108,7 +108,7 @@ class _SympyLagrangian(eqx.Module):
 class SympyLagrangianTerm(LagrangianTerm):
     """A `LagrangianTerm` whose Lagrangian and derivatives are compiled sympy expressions.
 
-    Build it with `LagrangianTerm.from_sympy` (or `sympy_lagrangian_term`). It has the methods
+    Build it with `sympy_lagrangian_term`. It has the methods
     of every `LagrangianTerm` (`momentum_and_force`, `velocity`, `energy`, `vf`, ...), computed
     from the closed forms instead of `jax.grad`:
 
@@ -189,14 +189,14 @@ class SympyLagrangianTerm(LagrangianTerm):
             raise ValueError(
                 "the Lagrangian is degenerate (∂²L/∂v² = 0: it is at most linear in the "
                 "velocities), so p = ∂L/∂v cannot be solved for v; pass velocity=v(t, q, p, "
-                "args) to from_sympy for a standard solver, or integrate with NetworkVI"
+                "args) to sympy_lagrangian_term for a standard solver, or integrate with NetworkVI"
             )
         n = self.legendre_iterations
         if n is None:
             raise ValueError(
                 "the Lagrangian is not quadratic in the velocities, so one Newton step does not "
                 "invert p = ∂L/∂v; pass legendre_iterations=n (Newton steps from v = 0) or a "
-                "closed-form velocity=v(t, q, p, args) to from_sympy"
+                "closed-form velocity=v(t, q, p, args) to sympy_lagrangian_term"
             )
         q, p = jnp.asarray(q), jnp.asarray(p)
         dtype = jnp.result_type(q, p)

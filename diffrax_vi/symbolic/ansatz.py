@@ -13,8 +13,8 @@ import numpy as np
 import sympy
 from jaxtyping import Array
 
-from ..symbolic import curve_function
-from .base import AbstractBasis
+from ..ansatz.base import AbstractBasis
+from .codegen import curve_function
 
 __all__ = ["SymbolicAnsatz", "VISEBasis"]
 

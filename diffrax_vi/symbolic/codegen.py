@@ -32,7 +32,7 @@ from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array
 from sympy.codegen.cfunctions import expm1, log1p
 
-from . import activations as _act
+from .. import activations as _act
 
 __all__ = [
     "CurveKernels",
