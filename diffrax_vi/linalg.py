@@ -1,7 +1,8 @@
 """Dense linear algebra in the working precision.
 
-LAPACK has no half precision, so below 32 bits the factorisations run in float32 and only the
-results are rounded back to the working dtype: a float16 run stays float16 at every interface.
+LAPACK has no half precision, so below 32 bits the factorisations run in float32
+(`precision.lapack_dtype`) and only the results are rounded back to the working dtype: a float16
+run stays float16 at every interface.
 """
 
 from __future__ import annotations
@@ -10,11 +11,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .precision import lapack_dtype as _work_dtype
+
 __all__ = ["solve", "damped_least_squares"]
-
-
-def _work_dtype(dtype):
-    return jnp.float32 if jnp.finfo(dtype).bits < 32 else dtype
 
 
 def solve(matrix: Array, rhs: Array) -> Array:

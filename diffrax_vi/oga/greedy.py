@@ -39,10 +39,10 @@ import numpy as np
 from jaxtyping import Array
 
 from ..activations import check_activation
+from ..precision import as_dtype, eps, norm2, power_of_two_scale, sqrt_eps
 from .config import OGA, OGAReference
 from .dictionaries import Refined
 from .fits import guarded_solve
-from .numerics import as_dtype, eps, norm2, power_of_two_scale, sqrt_eps
 from .qr import QRState, qr_append, qr_init
 from .reference import oga_reference_fit
 from .result import OGAResult

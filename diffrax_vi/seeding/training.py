@@ -32,6 +32,7 @@ from ..ansatz.base import AbstractBasis
 from ..ansatz.dense import DenseNetBasis
 from ..ansatz.shallow import ShallowNetBasis
 from ..linalg import damped_least_squares
+from ..precision import lapack_dtype
 from .fit import AbstractParameterSeed, FitProblem
 
 __all__ = ["LSGD", "TrainingMethod", "box_layer", "default_init_scale"]
@@ -56,10 +57,6 @@ def _check_network(seed: AbstractParameterSeed, basis: AbstractBasis) -> None:
     raise ValueError(
         f"{name} trains network ansätze (DenseNetBasis, ShallowNetBasis); it cannot fit {basis!r}"
     )
-
-
-def _work_dtype(dtype):
-    return jnp.float32 if jnp.finfo(dtype).bits < 32 else jnp.dtype(dtype)
 
 
 def default_init_scale(dtype) -> float:
@@ -297,7 +294,7 @@ class LSGD(AbstractParameterSeed):
     def fit(self, basis: AbstractBasis, problem: FitProblem) -> Array:
         self.check(basis)
         dtype = problem.targets.dtype
-        work = _work_dtype(dtype)
+        work = lapack_dtype(dtype)
         grid = _grid(problem, work)
         tol = _scaled_tolerance(self.tolerance, dtype, problem.targets).astype(work)
         lr = jnp.asarray(self.learning_rate, work)
@@ -429,7 +426,7 @@ class TrainingMethod(AbstractParameterSeed):
     def fit(self, basis: AbstractBasis, problem: FitProblem) -> Array:
         self.check(basis)
         dtype = problem.targets.dtype
-        work = _work_dtype(dtype)
+        work = lapack_dtype(dtype)
         grid = _grid(problem, work)
         tol = _scaled_tolerance(self.tolerance, dtype, problem.targets).astype(work)
         eta1, eta2 = self._rates()

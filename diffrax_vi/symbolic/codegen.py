@@ -33,6 +33,7 @@ from jaxtyping import Array
 from sympy.codegen.cfunctions import expm1, log1p
 
 from .. import activations as _act
+from ..precision import floating_dtype
 
 __all__ = [
     "CurveKernels",
@@ -105,15 +106,7 @@ _NAMESPACE = {"jnp": jnp, "jsp": jsp}
 _counter = itertools.count()
 
 
-def _working_dtype(*args):
-    """The common floating dtype of the inputs (the default float if none is floating)."""
-    dtype = jnp.result_type(*args) if args else jnp.dtype(float)
-    if not jnp.issubdtype(dtype, jnp.inexact):
-        dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
-    return dtype
-
-
-_NAMESPACE["_working_dtype"] = _working_dtype
+_NAMESPACE["_working_dtype"] = floating_dtype
 
 
 class _Printer:

@@ -1,12 +1,15 @@
-"""Precision-aware scalars and small helpers shared by the OGA modules.
+"""The working precision: one vocabulary for every module.
 
-Every quantity here lives in the working dtype `T` of the fit. Thresholds are written as
-multiples of `eps(T)` or `sqrt(eps(T))`, never as absolute numbers, so that the same code is
-meaningful in float16, float32 and float64.
+A solve runs in the dtype `T` of its state. Thresholds are written as multiples of `eps(T)` or
+`sqrt(eps(T))`, never as absolute numbers, so that the same code means the same in float16,
+float32 and float64; constants enter through `as_dtype`. LAPACK has no half precision, so
+factorisations run in `lapack_dtype(T)` (float32 below 32 bits) and their results are rounded
+back to `T`.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +19,8 @@ __all__ = [
     "eps",
     "sqrt_eps",
     "as_dtype",
+    "floating_dtype",
+    "lapack_dtype",
     "sumsq",
     "norm2",
     "power_of_two_scale",
@@ -39,6 +44,19 @@ def sqrt_eps(dtype) -> Array:
 def as_dtype(value, dtype) -> Array:
     """`value` (a Python number or array) as a `dtype` array: the one way constants enter."""
     return jnp.asarray(value, dtype=dtype)
+
+
+def lapack_dtype(dtype) -> np.dtype:
+    """The dtype a factorisation of `dtype` data runs in: float32 below 32 bits, else `dtype`."""
+    return np.dtype(jnp.float32) if jnp.finfo(dtype).bits < 32 else np.dtype(dtype)
+
+
+def floating_dtype(*values) -> np.dtype:
+    """The common floating dtype of `values` (the default float if none is floating)."""
+    dtype = jnp.result_type(*values) if values else jnp.dtype(float)
+    if not jnp.issubdtype(dtype, jnp.inexact):
+        dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+    return np.dtype(dtype)
 
 
 def sumsq(x: Array, axis=None) -> Array:
