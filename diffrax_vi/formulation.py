@@ -190,7 +190,7 @@ class FreeEndpoints(AbstractFormulation):
         with `(ϑ, f)` held fixed, and the Lagrangian's second derivatives come from one
         `jax.jacfwd` of `(ϑ, f)` per node. Forward mode through the whole residual instead
         pushes all `D·P` tangents through every coordinate: this is `D` times less work in the
-        network part (the 16-particle Toda lattice, double pendulum: see `benchmarks/speed.py`).
+        network part.
         """
         basis = ctx.basis
         if not getattr(basis, "coordinatewise", False):

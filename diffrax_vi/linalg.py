@@ -28,9 +28,7 @@ def damped_least_squares(matrix: Array, rhs: Array, sqrt_mu: Array) -> Array:
 
     The right-hand side rides along as an extra column of the factorised matrix, so the
     factorisation's triangle already holds `Qᵀ·rhs` and `Q` is never formed: about half the
-    work of a QR that returns `Q`, the same result up to rounding (a Toda-lattice step with
-    the fast settings: 89 ms against 206 ms, `benchmarks/long_runs.py toda_lattice 0.1 20 8
-    16 fast --again`).
+    work of a QR that returns `Q`, with the same result up to rounding.
     """
     dtype = jnp.result_type(rhs)
     work = _work_dtype(dtype)

@@ -134,8 +134,7 @@ class ShallowNetBasis(AbstractBasis):
       neuron `α σ(wτ + β)` and its first derivatives in `(α, w, β, τ)` (and those of its
       τ-derivative) are taken by sympy and compiled to JAX once, as the reference's symbolic
       kernels; higher derivatives (the Newton Jacobian) differentiate that compiled code.
-      Both give the same solution; on CPU they also cost the same (see
-      `benchmarks/derivatives.py`).
+      Both give the same solution.
     """
 
     activation: Callable = eqx.field(static=True)

@@ -107,9 +107,8 @@ def fit_network(
         return basis.from_neurons(res.W, res.b, res.c)
 
     # One greedy fit after another (a compiled loop over coordinates), not `vmap`: batching
-    # the greedy loop costs about a second of tracing and compiling. Run times
-    # (`benchmarks/oga_coordinates.py`): one coordinate 2.1 against 3.1 ms, 2 to 8 within
-    # 13 % either way, 16 about 30 % slower than `vmap`.
+    # the greedy loop costs about a second more of tracing and compiling and runs no faster
+    # for a few coordinates (benchmarks page, "Docstrings").
     return jax.lax.map(one, problem.targets.T).T
 
 
