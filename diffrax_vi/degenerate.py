@@ -5,7 +5,9 @@ Where `ϑ = ∂L/∂v` does not depend on `v` (an IODE such as the degenerate pe
 that constraint without its residual showing it; these helpers put `q_{n+1}` back on it
 (`first_order_end_correction`, used by the projected step) and measure how far an end state
 is off it (`primary_constraint_violation`, which every step reports and the all-parameter
-network step checks against `CONSTRAINT_TOLERANCE` and `CONSTRAINT_GROWTH`).
+network step checks against `CONSTRAINT_TOLERANCE` and `CONSTRAINT_GROWTH`). The step calls
+both through `end_on_constraint`, which tests once whether `ϑ` reads `v` and skips both for
+any other Lagrangian.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from .linalg import _work_dtype
 __all__ = [
     "CONSTRAINT_GROWTH",
     "CONSTRAINT_TOLERANCE",
+    "end_on_constraint",
     "first_order_end_correction",
     "primary_constraint_violation",
 ]
@@ -73,3 +76,30 @@ def primary_constraint_violation(ctx: StepContext, q1: Array, p1: Array) -> Arra
     theta, _, first_order = _momentum_map(ctx, q1)
     gap = jnp.max(jnp.abs(p1 - theta(q1)))
     return jax.lax.stop_gradient(jnp.where(first_order, gap, jnp.zeros_like(gap)))
+
+
+def end_on_constraint(ctx: StepContext, q1: Array, p1: Array, correct: bool = True
+                      ) -> tuple[Array, Array]:
+    """`(q_{n+1}, violation)`: the end position moved onto the primary constraint
+    (`first_order_end_correction`, with `correct`; else `q1` as it is) and
+    `primary_constraint_violation` there.
+
+    The same values as calling the two, but where `ϑ` reads `v` at the end point (any regular
+    Lagrangian) neither is computed: one `lax.cond` on that test returns `q1` and a zero
+    violation, which is what they give there. Only a first-order end state pays for the
+    Jacobians and the SVD of the correction."""
+    t = ctx.t + ctx.h
+
+    def theta_v(v):
+        return ctx.term.momentum(t, q1, v, ctx.args)
+
+    jv = jax.lax.stop_gradient(jax.jacfwd(theta_v)(jnp.zeros_like(q1)))
+
+    def first_order(q1, p1):
+        moved = q1 + first_order_end_correction(ctx, q1, p1) if correct else q1
+        return moved, primary_constraint_violation(ctx, moved, p1)
+
+    def regular(q1, p1):
+        return q1, jnp.zeros((), jnp.result_type(q1, p1))
+
+    return jax.lax.cond(jnp.all(jv == 0), first_order, regular, q1, p1)

@@ -22,8 +22,7 @@ from .ansatz.shallow import ShallowNetBasis
 from .degenerate import (
     CONSTRAINT_GROWTH,
     CONSTRAINT_TOLERANCE,
-    first_order_end_correction,
-    primary_constraint_violation,
+    end_on_constraint,
 )
 from .formulation import (
     AbstractFormulation,
@@ -549,8 +548,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
             (q1, p1), compensation = self._add_increments(ctx, increments, state.compensation)
             # A first-order Lagrangian's end state is moved onto its primary constraint
-            # (zero change for any other); a moved coordinate carries no compensation.
-            moved = q1 + first_order_end_correction(ctx, q1, p1)
+            # (no change for any other); a moved coordinate carries no compensation.
+            moved, violation = end_on_constraint(ctx, q1, p1)
             compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
             q1 = moved
         else:
@@ -558,11 +557,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 ctx, seed
             )
             compensation = state.compensation
+            violation = None
         q1 = q1.astype(ctx.q0.dtype)
         p1 = p1.astype(ctx.p0.dtype)
+        if violation is None:
+            _, violation = end_on_constraint(ctx, q1, p1, correct=False)
         return self._finish_step(
             ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-            compensation,
+            compensation, violation,
         )
 
     def _add_increments(self, ctx: StepContext, increments, compensation):
@@ -666,10 +668,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def _finish_step(
         self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-        compensation,
+        compensation, violation,
     ):
         """Failure results, dense output, the new solver state (the seed policy's record
-        accepts the step)."""
+        accepts the step). `violation` is the end state's distance from the primary
+        constraint (`end_on_constraint`)."""
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         result = diffrax.RESULTS.where(
             finite | (result != diffrax.RESULTS.successful),
@@ -681,7 +684,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         invalid = (ctx.h == 0) | ~jnp.isfinite(ctx.h) | ~jnp.isfinite(state.report.t)
         result = diffrax.RESULTS.where(invalid, STEP_FAILURES["vi_step_size_invalid"], result)
         scale = _residual_scale(ctx)
-        constraint = (primary_constraint_violation(ctx, q1, p1) / scale).astype(ctx.q0.dtype)
+        constraint = (violation / scale).astype(ctx.q0.dtype)
         first = jnp.where(jnp.isnan(state.first_constraint), constraint, state.first_constraint)
         # Drift is growth: above eps^CONSTRAINT_TOLERANCE and CONSTRAINT_GROWTH times the
         # distance of the run's first step (a bounded distance is the step's truncation error).

@@ -6,6 +6,7 @@ import functools
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -84,7 +85,8 @@ class LagrangeBasis(AbstractBasis):
         # Values of the same polynomial at the control points of the next step.
         ratio = jnp.asarray(ratio, theta.dtype)
         pts = jnp.asarray(self.control_points, theta.dtype)
-        return jnp.stack([self.evaluate(theta, 1 + ratio * c) for c in pts])
+        thetas = jnp.broadcast_to(theta, (len(pts), *theta.shape))
+        return jax.vmap(self.evaluate)(thetas, 1 + ratio * pts)
 
     def __repr__(self):
         return f"LagrangeBasis(degree={self.degree}, points={self.points!r})"
