@@ -38,14 +38,20 @@ from .projection import RoundoffNewton, UniformLayer, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport, from_root_find
 from .seeding.fit import AbstractParameterSeed
-from .seeding.policy import Seed, SeedPolicy, SeedRecord
+from .seeding.policy import (
+    Seed,
+    SeedPolicy,
+    SeedRecord,
+    check_seed_options,
+    needs_all_parameter_step,
+)
 from .seeding.policy import residual_scale as _residual_scale
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
     IntegratorExtrapolation,
-    PreviousStep,
     StepHistory,
 )
+from .solver_options import check_options
 from .terms import AbstractMechanicalTerm, unwrap_term
 
 __all__ = ["NetworkVI", "NetworkVIState"]
@@ -116,125 +122,65 @@ class NetworkVIState(eqx.Module):
 
 
 class NetworkVI(diffrax.AbstractImplicitSolver):
-    """Variational integrator whose trial trajectory on each step is a neural network (or
-    any other ansatz).
+    """Variational integrator whose trial curve on each step is a neural network (or any other
+    ansatz): the step's unknowns solve the discrete Euler–Lagrange equations of the
+    quadrature-approximated action. The state is `y = (q, p)` with the canonical momentum, the
+    term a `LagrangianTerm` or `IODETerm`, and the working precision the dtype of `y0`. A step
+    that fails ends the solve with one of the results of `diffrax_vi.results`.
 
-    Per step `[t_n, t_n + h]` the trajectory of each coordinate is built from the ansatz
-    `N(τ; θ)` (`τ ∈ [0, 1]`) by the `formulation`, and its unknowns solve the discrete
-    variational equations of the quadrature-approximated action. By default (a shallow
-    network) the step is variationally projected: the curve is sought in the span of a fixed
-    hidden layer's features, with free endpoints (`q_h(0) = q_n` an equation, `q_{n+1} =
-    q_h(1)`, `p_{n+1}` an unknown), a square system with an isolated root that plain Newton
-    solves to round-off. The reference's all-parameter formulations (`FreeEndpoints`,
-    `InterpolatingEndpoints`) solve for every network parameter instead. The state is
-    `y = (q, p)`, the term a `LagrangianTerm` or `IODETerm`, and the working precision is the
-    dtype of `y0`.
+    ```python
+    import diffrax, jax.numpy as jnp, diffrax_vi as dvi
 
-    The all-parameter solve of each step starts from a seed: a cheap trajectory estimate
-    (`initial_trajectory`) fitted by `initial_guess` (the Orthogonal Greedy Algorithm for
-    shallow networks), or the previous step's curve continued (`PreviousStep`). A step whose
-    solve does not converge ends the solve with one of the step failures of
-    `diffrax_vi.results` (a `diffrax.RESULTS` member per way of failing); the failed step's
-    time and residual are in the solver state's `report`.
+    term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 0.5 * q @ q)
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))
+    sol = diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.1, (jnp.ones(1), jnp.zeros(1)))
+    ```
 
     **Arguments:**
 
-    - `basis`: the ansatz, e.g. `ShallowNetBasis(diffrax_vi.tanh, 10)`, `DenseNetBasis`,
-      `SymbolicAnsatz`, `LagrangeBasis`.
-    - `quadrature`: rule on `[0, 1]` for the discrete action. Default `GaussLegendre(8)`.
-    - `formulation`: `VariableProjection()` (free endpoints on the span of a hidden layer's
-      features), `FreeEndpoints()` or `InterpolatingEndpoints()` (all parameters unknown).
-      Default `None`: `VariableProjection()` for a `ShallowNetBasis` without mirrored pairs
-      whose activation its fixed layer suits (`UniformLayer.suits`), unless an option of the
-      all-parameter step is given (a damped root finder, `reuse_neurons`, `PreviousStep()`,
-      or a seed-fit option: `initial_guess`, `bias_interval`, `dict_amount`); otherwise
-      `FreeEndpoints()`. The seed-fit options apply to the all-parameter step (and to
-      `VariableProjection`'s `SeedLayer`/`FirstSeedLayer`).
-    - `initial_trajectory`: `IntegratorExtrapolation()` (default, the reference's),
-      `HermiteExtrapolation()`, `NoExtrapolation()` or `PreviousStep()`. The projected step
-      restarts from it where its start from the previous curve does not converge.
-    - `initial_guess`: how the seed parameters are fitted to the trajectory: an OGA
-      configuration (default `OGA1d()`; shallow networks), `LSGD()`, `TrainingMethod()`,
-      `LeastSquaresFit()` (linear ansätze), `InitialWeights(...)`.
-    - `bias_interval`: bias range of the OGA dictionary. Default `(-π, π)` (the reference's).
-    - `dict_amount`: number of bias intervals of the OGA dictionary (`2(dict_amount + 1)`
-      atoms). Default 4000, the reference benchmark's value (its constructor default is 50000,
-      its tests use 400); 4000 gave the most reliable convergence on our fixtures.
-    - `reuse_neurons`: seed a step with the previous step's converged neurons (hidden weights
-      and biases) and output weights refitted to the new trajectory by linear least squares,
-      when that fit matches the trajectory to within `refit_tolerance`; otherwise (and on the
-      first step) run the OGA; if the solve from the refit fails, it restarts once from the
-      OGA seed (`NetworkVIState.restarts`). The refit costs a small linear solve where the
-      OGA costs a greedy search over the whole dictionary (about 2 of the 3 ms of an
-      oscillator step), and
-      fits as well on smooth motion. Default `False` (the OGA on every step, as the
-      reference does): the refitted networks converge to slightly worse-conditioned roots,
-      so results move at the level of the residual floor (oscillator, 10 steps of 0.1: max
-      error 1.2e-11 against 4.5e-13; over 300 steps, where truncation dominates, 4.4e-10
-      either way). `True` makes the oscillator step 6x faster and carries the double pendulum
-      at h = 0.1 past the step where the OGA seed stalls (step 26; it fails itself at step
-      34: see `benchmarks/speed.py`).
-    - `refit_tolerance`: acceptance bound on the relative misfit of the refit (weighted `L²`
-      on the step, over `1 + max|q|`). Default `None`: `sqrt(eps)` of the working dtype.
-    - `refit_residual`: refit only from a previous step whose solve ended at a residual of at
-      most this, relative to `1 + max(|q_n|, |p_n|)`; otherwise seed the step by a fresh fit.
-      Default `None`: no limit. Roots left at a higher residual are ill-conditioned, refits
-      carried on from them drift into worse ones, and each step adds an energy error about
-      the size of its residual. For long runs, where that error accumulates, a limit of
-      `2048·eps` (4.5e-13 in float64) keeps most refits and their speed: oscillator, 4000
-      steps of h = 0.25, largest energy error 6.1e-10 (3806 refits, 1.05 ms per step)
-      against 5.4e-9 without it (0.96 ms) and 1.6e-9 for the OGA on every step (3.39 ms;
-      `benchmarks/energy_drift.py`). The right limit depends on the problem: set it a little
-      above the median residual of the defaults' steps (on the double pendulum at h = 0.05
-      that median is 4e-10, and this limit would leave almost no refits). It does not suit a
-      root finder that stops early (`settle=0`): its residuals sit above the limit, so most
-      steps would pay for the OGA; use `refit_iterations` there.
-    - `refit_iterations`: refit only from a previous step whose solve took at most this many
-      iterations; otherwise seed the step by a fresh fit. Default `None`: no limit. Slow
-      solves mark the same ill-conditioned roots as high residuals do, and this guard still
-      tells them apart when the root finder stops early. Without it, a long run of the fast
-      configuration (`settle=0`) drifts: on the Toda lattice at h = 0.1 (width 8, 16 nodes)
-      the mean count rose from about 7.5 per step over the first 10⁴ steps to about 19 by
-      step 16 000, where a fresh fit brings it back to 8 (`benchmarks/long_runs.py`). Set it
-      a little above the counts of steps seeded by a fresh fit (12 there, where they take
-      4 to 11): the guard then fires on about 1 % of the steps.
-    - `restart_failed`: where the solve from a seed carried over from the previous step
-      (`PreviousStep` warm start, `reuse_neurons` refit) fails, restart it once from a fresh
-      trajectory fit (with `LevenbergMarquardt` or `RegularisedNewton`). Default `True`.
-      With those root finders the fresh fit is their fallback point, in the compiled step
-      once: they start there where the carried seed is unusable, and restart there when
-      allowed, so the switch costs no compile time.
-    - `root_finder`: the per-step root finder. Default `None`: `RoundoffNewton()` for
-      `VariableProjection()` (`confirm=False` on a network's span, where the confirming
-      update measurably adds an energy bias), and `LevenbergMarquardt()` (whose tolerances
-      scale with the working precision) for the all-parameter formulations. Other
-      `optimistix` root finders are accepted by the all-parameter formulations but get none
-      of the solver's options (residual scale, closed-form Jacobian, fallback seed) and stop
-      on absolute tolerances; a plain
-      `optx.Newton` meets a singular Jacobian there and fails the step.
+    - `basis`: the ansatz (`ShallowNetBasis`, `DenseNetBasis`, `SymbolicAnsatz`,
+      `LagrangeBasis`).
+    - `quadrature`: the rule on `[0, 1]` for the action. Default `GaussLegendre(8)`.
+    - `formulation`: `VariableProjection()` (the curve in the span of a fixed hidden layer,
+      free endpoints: a square system with an isolated root), or the reference's
+      all-parameter `FreeEndpoints()` / `InterpolatingEndpoints()`. Default `None`:
+      `VariableProjection()` for a `ShallowNetBasis` without mirrored pairs whose activation
+      `UniformLayer` suits, unless an option of the all-parameter step is given (a damped root
+      finder, `reuse_neurons`, `PreviousStep()`, `initial_guess`, `bias_interval`,
+      `dict_amount`); otherwise `FreeEndpoints()`.
+    - `initial_trajectory`: the trajectory estimate a seed is fitted to:
+      `IntegratorExtrapolation()` (default), `HermiteExtrapolation()`, `NoExtrapolation()`, or
+      `PreviousStep()` (the previous curve continued). The projected step restarts from it
+      where its start from the previous curve does not converge.
+    - `initial_guess`: how seed parameters are fitted to that trajectory: an OGA configuration
+      (default `OGA1d()`), `LSGD()`, `TrainingMethod()`, `LeastSquaresFit()` (linear
+      ansätze), `InitialWeights(...)`.
+    - `bias_interval`, `dict_amount`: the OGA dictionary's bias range (default `(-π, π)`) and
+      number of bias intervals (default 4000).
+    - `reuse_neurons`: seed an all-parameter step with the previous step's neurons and output
+      weights refitted to the new trajectory, where that fit is within `refit_tolerance`
+      (default `√eps`); otherwise, and on the first step, run the OGA. Default `False`.
+    - `refit_residual`, `refit_iterations`: refit only from a previous step whose solve ended
+      at most at this relative residual, or within this many iterations (default `None`: no
+      limit); guards for long runs (choosing page).
+    - `restart_failed`: where a solve from a seed carried over from the previous step fails,
+      restart it once from a fresh fit. Default `True`.
+    - `root_finder`: the per-step root finder. Default `None`: `RoundoffNewton()` for the
+      projected step (not confirming on a network's span), `LevenbergMarquardt()` for the
+      all-parameter steps. `FixedPointIteration` also serves the projected step. A plain
+      optimistix root finder gets none of the solver's options (residual scale, closed-form
+      Jacobian, fallback seed) and stops on absolute tolerances.
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
-    - `adjoint`: how `optimistix.root_find` differentiates a converged step. The default solves
-      the implicit-function system by least squares, since the step's Jacobian is singular.
-    - `iteration_log`: keep the iteration count of each of the first `iteration_log` accepted
-      steps in the solver state (`SaveAt(solver_state=True)`, then
-      `sol.solver_state.iteration_log`). Default 0: only totals and the histogram.
-    - `error_estimate`: `None` (default: no error estimate, for fixed steps, `StepTo` and
-      `ConstantStepSize`) or a polynomial degree `k` for adaptive steps with
-      `diffrax.PIDController`. Each step then also solves the classical cGVI of degree `k`
-      (`LagrangeBasis(k)`, `GaussLegendre(k + 1)`, order `2k`) from the same start, seeded by
-      the converged curve, and reports the difference of the two end states as `y_error`
-      (`error_order = 2k + 1`). This is the error of the lower-order companion, so it
-      over-estimates the network's error, and the controller picks conservative steps. A
-      failed step reports an infinite error, so the controller rejects it and retries with a
-      smaller step. Varying steps break the symplectic, energy-bounding behaviour of a
-      variational integrator: use them for transients, fixed steps for long runs.
-    - `compensated`: with the projected step, add each step's increments `Δq`, `Δp` to the
-      state by compensated (Kahan–Babuška) summation, carrying the rounding of each sum in
-      the solver state into the next step (`NetworkVIState.compensation`). The projected
-      step computes its increments to the rounding of their own size, so the state no
-      longer loses `eps·|y|` per step to the sum: the energy error of a long run grows more
-      slowly. Default `True`. (The all-parameter formulations solve for `q_{n+1}` itself;
-      there it has no effect.)
+    - `adjoint`: how `optimistix.root_find` differentiates a converged step; the default
+      solves the implicit-function system by least squares.
+    - `iteration_log`: keep the iteration counts of the first `iteration_log` accepted steps in
+      the solver state. Default 0.
+    - `error_estimate`: `None` (default, constant steps) or a degree `k`: each step also solves
+      the cGVI of degree `k` from the same start and reports the difference of the end states
+      as `y_error` (`error_order = 2k + 1`), for `diffrax.PIDController`. A failed step
+      reports an infinite error, so the controller retries it smaller.
+    - `compensated`: add the projected step's increments to the state by compensated
+      summation, carrying the rounding in `NetworkVIState.compensation`. Default `True`.
     """
 
     basis: AbstractBasis
@@ -275,139 +221,15 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 self.root_finder = LevenbergMarquardt()
 
     def __check_init__(self):
-        if not isinstance(self.basis, AbstractBasis):
-            raise TypeError(f"basis must be an ansatz such as ShallowNetBasis, got {self.basis!r}")
-        if not isinstance(self.quadrature, AbstractQuadrature):
-            raise TypeError(
-                f"quadrature must be a rule such as GaussLegendre(8), got {self.quadrature!r}"
-            )
-        if not isinstance(self.formulation, AbstractFormulation):
-            raise TypeError(
-                "formulation must be FreeEndpoints(), InterpolatingEndpoints() or "
-                "VariableProjection(), got "
-                f"{self.formulation!r}"
-            )
-        if not isinstance(self.initial_trajectory, AbstractInitialTrajectory):
-            raise TypeError(
-                "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
-                f"NoExtrapolation() or PreviousStep(); got {self.initial_trajectory!r}"
-            )
-        if not isinstance(self.compensated, bool):
-            raise TypeError(f"compensated must be True or False, got {self.compensated!r}")
-        need = self.basis.min_nodes()
-        if self.quadrature.num_nodes < need:
-            raise ValueError(
-                f"{self.basis!r} needs a quadrature with at least {need} nodes; "
-                f"{self.quadrature!r} has {self.quadrature.num_nodes}. With fewer, the step "
-                "equations do not determine the step."
-            )
-        # The fixed span of the projected step needs no seed fit at all.
-        fits_seeds = not (
-            isinstance(self.formulation, VariableProjection)
-            and isinstance(self.formulation.hidden, UniformLayer)
+        check_options(self)
+        check_seed_options(
+            self.basis, self.formulation, initial_trajectory=self.initial_trajectory,
+            initial_guess=self.initial_guess, bias_interval=self.bias_interval,
+            dict_amount=self.dict_amount, reuse_neurons=self.reuse_neurons,
+            refit_tolerance=self.refit_tolerance, refit_residual=self.refit_residual,
+            refit_iterations=self.refit_iterations, restart_failed=self.restart_failed,
+            changed=self._seed_options_set(),
         )
-        if isinstance(self.initial_guess, OGA | OGAReference):
-            if fits_seeds and not isinstance(self.basis, ShallowNetBasis):
-                raise ValueError(
-                    f"an OGA seed fits shallow networks; {self.basis!r} needs another "
-                    "initial_guess (e.g. LSGD() for DenseNetBasis, LeastSquaresFit() for "
-                    "LagrangeBasis)"
-                )
-        elif isinstance(self.initial_guess, AbstractParameterSeed):
-            self.initial_guess.check(self.basis)
-        else:
-            raise TypeError(
-                "initial_guess must be an OGA configuration (e.g. OGA1d()) or a parameter "
-                f"seed (LSGD(), TrainingMethod(), LeastSquaresFit(), ...); got "
-                f"{self.initial_guess!r}"
-            )
-        if isinstance(self.initial_trajectory, PreviousStep):
-            if not isinstance(self.formulation, FreeEndpoints) or not self.basis.can_advance:
-                raise ValueError(
-                    "PreviousStep continues the previous step's curve past its end, which "
-                    f"needs FreeEndpoints() and an ansatz that can be continued; {self.basis!r} "
-                    f"with {type(self.formulation).__name__}() cannot. Use "
-                    "IntegratorExtrapolation() or HermiteExtrapolation()."
-                )
-        lo, hi = self.bias_interval
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-            raise ValueError(
-                f"bias_interval must be finite and increasing, got {self.bias_interval!r}"
-            )
-        if not isinstance(self.dict_amount, int) or self.dict_amount < 1:
-            raise ValueError(f"dict_amount must be a positive integer, got {self.dict_amount!r}")
-        if self.error_estimate is not None and (
-            not isinstance(self.error_estimate, int)
-            or isinstance(self.error_estimate, bool)
-            or self.error_estimate < 1
-        ):
-            raise ValueError(
-                "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
-                f"{self.error_estimate!r}"
-            )
-        if isinstance(self.formulation, VariableProjection):
-            self.formulation.check_basis(self.basis)
-            if self.reuse_neurons or isinstance(self.initial_trajectory, PreviousStep):
-                raise ValueError(
-                    "VariableProjection() carries its hidden layer from step to step by its "
-                    "`hidden` rule; reuse_neurons and PreviousStep() belong to the "
-                    "all-parameter formulations"
-                )
-            changed = self._seed_options_set()
-            if isinstance(self.formulation.hidden, UniformLayer) and changed:
-                raise ValueError(
-                    "VariableProjection() with its fixed UniformLayer() fits no seed, so "
-                    f"{', '.join(changed)} would have no effect; use hidden=SeedLayer() or "
-                    "FirstSeedLayer() to seed the hidden layer by a fit, or "
-                    "formulation=FreeEndpoints() for the all-parameter step"
-                )
-            if not isinstance(self.root_finder, RoundoffNewton):
-                raise ValueError(
-                    "VariableProjection() solves a square system with an isolated root: use "
-                    "root_finder=RoundoffNewton() (the default) or FixedPointIteration(), got "
-                    f"{self.root_finder!r}"
-                )
-        if (
-            isinstance(self.root_finder, AbstractDampedNewton)
-            and self.root_finder.jacobian == "structured"
-            and not (isinstance(self.formulation, FreeEndpoints) and self.basis.coordinatewise)
-        ):
-            raise ValueError(
-                "jacobian='structured' assembles the Jacobian by coordinate blocks, which needs "
-                "free endpoints and a basis whose coordinates have their own parameters "
-                f"(ShallowNetBasis, LagrangeBasis); got {self.basis!r} with "
-                f"{type(self.formulation).__name__}"
-            )
-        if not isinstance(self.restart_failed, bool):
-            raise TypeError(f"restart_failed must be True or False, got {self.restart_failed!r}")
-        if not isinstance(self.reuse_neurons, bool):
-            raise TypeError(f"reuse_neurons must be True or False, got {self.reuse_neurons!r}")
-        if self.reuse_neurons and not self._seeding.refits:
-            raise ValueError(
-                "reuse_neurons refits the output weights of a ShallowNetBasis seeded by an OGA "
-                f"configuration; got {self.basis!r} with {self.initial_guess!r}"
-            )
-        for name in ("refit_tolerance", "refit_residual"):
-            tol = getattr(self, name)
-            if tol is not None and not (
-                isinstance(tol, int | float) and not isinstance(tol, bool) and tol >= 0
-            ):
-                raise ValueError(f"{name} must be None or a number >= 0, got {tol!r}")
-            if tol is not None and not self.reuse_neurons:
-                raise ValueError(f"{name} applies to refits: pass it with reuse_neurons=True")
-        cap = self.refit_iterations
-        if cap is not None and (not isinstance(cap, int) or isinstance(cap, bool) or cap < 0):
-            raise ValueError(f"refit_iterations must be None or an integer >= 0, got {cap!r}")
-        if cap is not None and not self.reuse_neurons:
-            raise ValueError("refit_iterations applies to refits: pass it with reuse_neurons=True")
-        if not isinstance(self.iteration_log, int) or self.iteration_log < 0:
-            raise ValueError(
-                f"iteration_log must be a non-negative integer, got {self.iteration_log!r}"
-            )
-        if not isinstance(self.root_find_max_steps, int) or self.root_find_max_steps < 1:
-            raise ValueError(
-                f"root_find_max_steps must be a positive integer, got {self.root_find_max_steps!r}"
-            )
 
     def _default_formulation(self) -> AbstractFormulation:
         """`VariableProjection()` where the ansatz and the other options allow it, else
@@ -421,8 +243,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             and UniformLayer.suits(self.basis.activation)
         )
         all_parameter_options = (
-            self.reuse_neurons
-            or isinstance(self.initial_trajectory, PreviousStep)
+            needs_all_parameter_step(self.initial_trajectory, self.reuse_neurons)
             or bool(self._seed_options_set())
             or not (self.root_finder is None or isinstance(self.root_finder, RoundoffNewton))
         )

@@ -9,6 +9,7 @@ from its options; it holds no state of its own.
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -18,7 +19,7 @@ from jaxtyping import Array, PyTree
 
 from ..ansatz.base import AbstractBasis
 from ..ansatz.shallow import ShallowNetBasis
-from ..formulation import AbstractFormulation, StepContext, stage_values
+from ..formulation import AbstractFormulation, FreeEndpoints, StepContext, stage_values
 from ..lazy import unless_all_skip
 from ..nonlinear import AbstractDampedNewton
 from ..oga import OGA, OGAReference
@@ -32,7 +33,10 @@ from .fit import (
 )
 from .trajectories import AbstractInitialTrajectory, HermiteExtrapolation, PreviousStep, StepHistory
 
-__all__ = ["Seed", "SeedPolicy", "SeedRecord", "residual_scale"]
+__all__ = [
+    "Seed", "SeedPolicy", "SeedRecord", "check_seed_options", "needs_all_parameter_step",
+    "residual_scale",
+]
 
 
 class SeedRecord(eqx.Module):
@@ -105,11 +109,7 @@ class SeedPolicy(eqx.Module):
         """The policy of a solver's options. Refits need an OGA-seeded `ShallowNetBasis`; the
         fresh fit is left to the root finder where it is damped (it takes a fallback) and the
         seed may be carried over from the previous step."""
-        refits = bool(
-            reuse_neurons
-            and isinstance(initial_guess, OGA | OGAReference)
-            and isinstance(basis, ShallowNetBasis)
-        )
+        refits = bool(reuse_neurons) and _can_refit(basis, initial_guess)
         lazy = isinstance(root_finder, AbstractDampedNewton) and (
             isinstance(initial_trajectory, PreviousStep) or refits
         )
@@ -364,3 +364,93 @@ def _history(ctx: StepContext, curve, q1: Array) -> StepHistory:
     return jax.lax.stop_gradient(
         StepHistory(jnp.array(True), ctx.t, ctx.h, ctx.q0, v[0], ctx.p0, f[0], v[1], f[1])
     )
+
+
+def _can_refit(basis: AbstractBasis, initial_guess) -> bool:
+    """Refits keep the neurons of an OGA-seeded shallow network and refit its output weights."""
+    return isinstance(initial_guess, OGA | OGAReference) and isinstance(basis, ShallowNetBasis)
+
+
+def needs_all_parameter_step(initial_trajectory, reuse_neurons: bool) -> bool:
+    """Whether these seed options belong to the all-parameter step only (the previous curve
+    continued, or refitted neurons)."""
+    return bool(reuse_neurons) or isinstance(initial_trajectory, PreviousStep)
+
+
+def check_seed_options(
+    basis: AbstractBasis, formulation: AbstractFormulation, *, initial_trajectory,
+    initial_guess, bias_interval, dict_amount, reuse_neurons, refit_tolerance, refit_residual,
+    refit_iterations, restart_failed, changed: list[str],
+) -> None:
+    """Refuse seed options that do not fit the ansatz or the formulation, naming them
+    (`changed`: the seed-fit options given other values than their defaults)."""
+    if not isinstance(initial_trajectory, AbstractInitialTrajectory):
+        raise TypeError(
+            "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
+            f"NoExtrapolation() or PreviousStep(); got {initial_trajectory!r}"
+        )
+    # The fixed span of the projected step needs no seed fit at all.
+    fixed_span = isinstance(formulation, VariableProjection) and isinstance(
+        formulation.hidden, UniformLayer
+    )
+    if isinstance(initial_guess, OGA | OGAReference):
+        if not fixed_span and not isinstance(basis, ShallowNetBasis):
+            raise ValueError(
+                f"an OGA seed fits shallow networks; {basis!r} needs another initial_guess "
+                "(e.g. LSGD() for DenseNetBasis, LeastSquaresFit() for LagrangeBasis)"
+            )
+    elif isinstance(initial_guess, AbstractParameterSeed):
+        initial_guess.check(basis)
+    else:
+        raise TypeError(
+            "initial_guess must be an OGA configuration (e.g. OGA1d()) or a parameter seed "
+            f"(LSGD(), TrainingMethod(), LeastSquaresFit(), ...); got {initial_guess!r}"
+        )
+    if isinstance(initial_trajectory, PreviousStep):
+        if not isinstance(formulation, FreeEndpoints) or not basis.can_advance:
+            raise ValueError(
+                "PreviousStep continues the previous step's curve past its end, which needs "
+                f"FreeEndpoints() and an ansatz that can be continued; {basis!r} with "
+                f"{type(formulation).__name__}() cannot. Use IntegratorExtrapolation() or "
+                "HermiteExtrapolation()."
+            )
+    lo, hi = bias_interval
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(f"bias_interval must be finite and increasing, got {bias_interval!r}")
+    if not isinstance(dict_amount, int) or dict_amount < 1:
+        raise ValueError(f"dict_amount must be a positive integer, got {dict_amount!r}")
+    if isinstance(formulation, VariableProjection):
+        if needs_all_parameter_step(initial_trajectory, reuse_neurons):
+            raise ValueError(
+                "VariableProjection() carries its hidden layer from step to step by its "
+                "`hidden` rule; reuse_neurons and PreviousStep() belong to the all-parameter "
+                "formulations"
+            )
+        if fixed_span and changed:
+            raise ValueError(
+                "VariableProjection() with its fixed UniformLayer() fits no seed, so "
+                f"{', '.join(changed)} would have no effect; use hidden=SeedLayer() or "
+                "FirstSeedLayer() to seed the hidden layer by a fit, or "
+                "formulation=FreeEndpoints() for the all-parameter step"
+            )
+    if not isinstance(restart_failed, bool):
+        raise TypeError(f"restart_failed must be True or False, got {restart_failed!r}")
+    if not isinstance(reuse_neurons, bool):
+        raise TypeError(f"reuse_neurons must be True or False, got {reuse_neurons!r}")
+    if reuse_neurons and not _can_refit(basis, initial_guess):
+        raise ValueError(
+            "reuse_neurons refits the output weights of a ShallowNetBasis seeded by an OGA "
+            f"configuration; got {basis!r} with {initial_guess!r}"
+        )
+    for name, tol in (("refit_tolerance", refit_tolerance), ("refit_residual", refit_residual)):
+        if tol is not None and not (
+            isinstance(tol, int | float) and not isinstance(tol, bool) and tol >= 0
+        ):
+            raise ValueError(f"{name} must be None or a number >= 0, got {tol!r}")
+        if tol is not None and not reuse_neurons:
+            raise ValueError(f"{name} applies to refits: pass it with reuse_neurons=True")
+    cap = refit_iterations
+    if cap is not None and (not isinstance(cap, int) or isinstance(cap, bool) or cap < 0):
+        raise ValueError(f"refit_iterations must be None or an integer >= 0, got {cap!r}")
+    if cap is not None and not reuse_neurons:
+        raise ValueError("refit_iterations applies to refits: pass it with reuse_neurons=True")

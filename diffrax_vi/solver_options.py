@@ -1,0 +1,76 @@
+"""Checks of `NetworkVI`'s options that are not about seeding (those are
+`seeding.policy.check_seed_options`): types, the quadrature against the ansatz, and the
+formulation against the root finder."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from .ansatz.base import AbstractBasis
+from .formulation import AbstractFormulation, FreeEndpoints
+from .nonlinear import AbstractDampedNewton
+from .projection import RoundoffNewton, VariableProjection
+from .quadrature import AbstractQuadrature
+
+if TYPE_CHECKING:
+    from .solver import NetworkVI
+
+__all__ = ["check_options"]
+
+
+def check_options(solver: NetworkVI) -> None:
+    """Raise a `TypeError` or `ValueError` naming the first option of `solver` that is wrong."""
+    if not isinstance(solver.basis, AbstractBasis):
+        raise TypeError(f"basis must be an ansatz such as ShallowNetBasis, got {solver.basis!r}")
+    if not isinstance(solver.quadrature, AbstractQuadrature):
+        raise TypeError(
+            f"quadrature must be a rule such as GaussLegendre(8), got {solver.quadrature!r}"
+        )
+    if not isinstance(solver.formulation, AbstractFormulation):
+        raise TypeError(
+            "formulation must be FreeEndpoints(), InterpolatingEndpoints() or "
+            f"VariableProjection(), got {solver.formulation!r}"
+        )
+    if not isinstance(solver.compensated, bool):
+        raise TypeError(f"compensated must be True or False, got {solver.compensated!r}")
+    need = solver.basis.min_nodes()
+    if solver.quadrature.num_nodes < need:
+        raise ValueError(
+            f"{solver.basis!r} needs a quadrature with at least {need} nodes; "
+            f"{solver.quadrature!r} has {solver.quadrature.num_nodes}. With fewer, the step "
+            "equations do not determine the step."
+        )
+    estimate = solver.error_estimate
+    if estimate is not None and (
+        not isinstance(estimate, int) or isinstance(estimate, bool) or estimate < 1
+    ):
+        raise ValueError(
+            "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
+            f"{estimate!r}"
+        )
+    if isinstance(solver.formulation, VariableProjection):
+        solver.formulation.check_basis(solver.basis)
+        if not isinstance(solver.root_finder, RoundoffNewton):
+            raise ValueError(
+                "VariableProjection() solves a square system with an isolated root: use "
+                "root_finder=RoundoffNewton() (the default) or FixedPointIteration(), got "
+                f"{solver.root_finder!r}"
+            )
+    if (
+        isinstance(solver.root_finder, AbstractDampedNewton)
+        and solver.root_finder.jacobian == "structured"
+        and not (isinstance(solver.formulation, FreeEndpoints) and solver.basis.coordinatewise)
+    ):
+        raise ValueError(
+            "jacobian='structured' assembles the Jacobian by coordinate blocks, which needs "
+            "free endpoints and a basis whose coordinates have their own parameters "
+            f"(ShallowNetBasis, LagrangeBasis); got {solver.basis!r} with "
+            f"{type(solver.formulation).__name__}"
+        )
+    if not isinstance(solver.iteration_log, int) or solver.iteration_log < 0:
+        raise ValueError(
+            f"iteration_log must be a non-negative integer, got {solver.iteration_log!r}"
+        )
+    cap = solver.root_find_max_steps
+    if not isinstance(cap, int) or cap < 1:
+        raise ValueError(f"root_find_max_steps must be a positive integer, got {cap!r}")
