@@ -39,7 +39,7 @@ import optimistix as optx  # noqa: E402
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.fixed_point import FixedPointIteration  # noqa: E402
-from diffrax_vi.solver import _residual_scale  # noqa: E402
+from diffrax_vi.seeding.policy import residual_scale as _residual_scale  # noqa: E402
 
 CASES = {
     "oscillator (h = 0.5)": (problems.harmonic_oscillator, {}, 0.5, 4000),

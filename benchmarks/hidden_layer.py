@@ -202,7 +202,9 @@ def _oga(solver, term, args, h):
     def fit(t, q0, p0):
         state = solver.init(term, t, t + h, (q0, p0), args)
         ctx = solver._context(term, t, t + h, (q0, p0), args)
-        (theta, _), _, _ = solver._seeding._cold_seed(ctx, state.theta, state.fresh, state.history)
+        (theta, _), _, _ = solver.seed_policy._cold_seed(
+            ctx, state.theta, state.fresh, state.history
+        )
         _, w, beta = ctx.basis.split(theta)
         return w, beta
 
@@ -723,7 +725,7 @@ def main(argv=None):
             ctx = solver._context(term, t, t + fx.h, (q, p), pargs)
             if layer is None:
                 state = solver.init(term, t, t + fx.h, (q, p), pargs)
-                (theta, _), _, _ = solver._seeding._cold_seed(ctx, state.theta, state.fresh,
+                (theta, _), _, _ = solver.seed_policy._cold_seed(ctx, state.theta, state.fresh,
                                                      state.history)
                 _, w, beta = ctx.basis.split(theta)
             else:

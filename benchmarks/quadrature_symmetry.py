@@ -45,7 +45,7 @@ from diffrax_vi.ansatz import polynomial  # noqa: E402
 
 def exact_rule(n):
     """All nodes and weights of GL(n) on [0, 1] as mpmath numbers, increasing nodes."""
-    nodes, weights = quadrature._gauss_legendre_exact(n)
+    nodes, weights = quadrature.gauss_legendre_exact(n)
     odd = n % 2
     lower = [1 - c for c in reversed(nodes[odd:])]
     return lower + list(nodes), list(reversed(weights[odd:])) + list(weights)

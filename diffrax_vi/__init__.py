@@ -67,7 +67,8 @@ from .seeding import (
     TrainingMethod,
     TrajectoryFit,
 )
-from .solver import NetworkVI, NetworkVIState
+from .solver import NetworkVI
+from .solver_state import NetworkVIState
 from .spectral import SpectralCGVI, spectral_degree, spectral_step_error
 from .step_size import RetryFailedSteps
 from .terms import IODETerm, LagrangianTerm

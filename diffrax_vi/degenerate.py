@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .formulation import StepContext
-from .linalg import _work_dtype
+from .precision import lapack_dtype
 
 __all__ = [
     "CONSTRAINT_GROWTH",
@@ -60,7 +60,7 @@ def first_order_end_correction(ctx: StepContext, q1: Array, p1: Array) -> Array:
     point the change is zero.
     """
     theta, jq, first_order = _momentum_map(ctx, q1)
-    work = _work_dtype(q1.dtype)
+    work = lapack_dtype(q1.dtype)
     # (∂ϑ/∂q)^+ by SVD (`jnp.linalg.pinv` would put a float64 constant into float32 steps)
     u, sv, vt = jnp.linalg.svd(jq.astype(work))
     kept = sv > 10 * max(jq.shape) * jnp.finfo(work).eps * sv[0]

@@ -22,7 +22,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
 from .lazy import unless_all_skip
-from .linalg import _work_dtype
+from .precision import lapack_dtype
 from .projection import RoundoffNewton, _NewtonState
 
 __all__ = ["FixedPointIteration"]
@@ -38,7 +38,7 @@ class _ChordState(_NewtonState):
 def _factor(jac: Array, dtype, inverse: bool) -> tuple[Array, ...]:
     """`(J⁻¹,)` or the LU factors `(lu, pivots)` of `jac`, in the working precision (float32
     below 32 bits)."""
-    lu = jax.scipy.linalg.lu_factor(jac.astype(_work_dtype(dtype)))
+    lu = jax.scipy.linalg.lu_factor(jac.astype(lapack_dtype(dtype)))
     if not inverse:
         return lu
     eye = jnp.eye(jac.shape[0], dtype=lu[0].dtype)
@@ -156,7 +156,7 @@ class FixedPointIteration(RoundoffNewton):
             factors = (kinetic(y, args),)
             if self.refresh is not None:
                 size = flat.shape[0]
-                work = _work_dtype(dtype)
+                work = lapack_dtype(dtype)
                 factors += (jnp.zeros((size, size), work), jnp.array(False))
         else:
             factors = _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .precision import lapack_dtype as _work_dtype
+from .precision import lapack_dtype
 
 __all__ = ["solve", "damped_least_squares"]
 
@@ -19,7 +19,7 @@ __all__ = ["solve", "damped_least_squares"]
 def solve(matrix: Array, rhs: Array) -> Array:
     """`matrix⁻¹ rhs` in the dtype of `rhs`."""
     dtype = jnp.result_type(rhs)
-    work = _work_dtype(dtype)
+    work = lapack_dtype(dtype)
     return jnp.linalg.solve(matrix.astype(work), rhs.astype(work)).astype(dtype)
 
 
@@ -31,7 +31,7 @@ def damped_least_squares(matrix: Array, rhs: Array, sqrt_mu: Array) -> Array:
     work of a QR that returns `Q`, with the same result up to rounding.
     """
     dtype = jnp.result_type(rhs)
-    work = _work_dtype(dtype)
+    work = lapack_dtype(dtype)
     n = matrix.shape[1]
     column = rhs.ndim == 1
     rhs = rhs.astype(work)[:, None] if column else rhs.astype(work)

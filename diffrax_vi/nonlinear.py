@@ -193,7 +193,9 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         traced boolean so that one compiled program serves both tests."""
         return self.convergence == "reference"
 
-    def _tols(self, dtype) -> dict[str, float]:
+    def tolerances(self, dtype) -> dict[str, float]:
+        """`ftol`, `floor` and `otol` in effect for `dtype`: the given ones, else the defaults
+        (`default_tolerances`)."""
         tol = default_tolerances(dtype)
         for name in ("ftol", "floor", "otol"):
             if getattr(self, name) is not None:
@@ -360,7 +362,8 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             still=still,
             refresh=~(ok & (a == 1) & (fmax < 0.25 * jnp.max(jnp.abs(f))))
             | (reused >= self.reuse_jacobian)
-            | (fmax <= self._tols(dtype)["floor"] * jnp.asarray(options.get("scale", 1.0), dtype)),
+            | (fmax <= self.tolerances(dtype)["floor"]
+               * jnp.asarray(options.get("scale", 1.0), dtype)),
             restarted=state.restarted,
             pending=state.pending,
             from_fallback=state.from_fallback,
@@ -411,7 +414,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
     def _outcome(self, options, state):
         """Whether the solve has converged or failed, and its result so far."""
         dtype = state.f.dtype
-        tol = self._tols(dtype)
+        tol = self.tolerances(dtype)
         scale = jnp.asarray(options.get("scale", 1.0), dtype)
         fmax = jnp.max(jnp.abs(state.f))
         stuck = state.idle >= self.patience_floor

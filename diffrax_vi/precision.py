@@ -21,6 +21,8 @@ __all__ = [
     "as_dtype",
     "floating_dtype",
     "lapack_dtype",
+    "two_sum",
+    "compensated_add",
     "sumsq",
     "norm2",
     "power_of_two_scale",
@@ -98,3 +100,18 @@ def power_of_two_scale(largest: Array) -> Array:
     scale = lax.bitcast_convert_type(bits, dtype)
     ok = in_range & jnp.isfinite(largest) & (largest > 0)
     return jnp.where(ok, scale, one)
+
+
+def two_sum(a: Array, b: Array) -> tuple[Array, Array]:
+    """`(s, e)` with `s = fl(a + b)` and `a + b = s + e` exactly (Knuth's TwoSum: no
+    condition on the sizes of `a` and `b`)."""
+    s = a + b
+    b_part = s - a
+    a_part = s - b_part
+    return s, (a - a_part) + (b - b_part)
+
+
+def compensated_add(x: Array, dx: Array, carried: Array) -> tuple[Array, Array]:
+    """`x + dx` by compensated summation: the rounding `carried` from the last sum is added to
+    the increment, and the rounding of this sum is returned to be carried to the next."""
+    return two_sum(x, dx.astype(x.dtype) + carried)

@@ -48,7 +48,8 @@ from .ansatz.shallow import ShallowNetBasis
 from .degenerate import first_order_end_correction
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
 from .lazy import unless_all_skip
-from .linalg import _work_dtype, solve
+from .linalg import solve
+from .precision import lapack_dtype
 
 __all__ = [
     "AbstractHiddenLayer",
@@ -120,7 +121,7 @@ def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: fl
     weights are the features' least-squares fit of the constant."""
     n = value.shape[0] - 2
     dtype = value.dtype
-    work = _work_dtype(dtype)
+    work = lapack_dtype(dtype)
     root_b = jnp.sqrt(weights.astype(work))
     rb = root_b[:, None, None]
     data = jnp.concatenate([rb * value[:n].astype(work), rb * slope[:n].astype(work),
@@ -505,7 +506,7 @@ class VariableProjection(FreeEndpoints):
             return ctx.term.momentum_and_force(t, qj, vj, ctx.args)[0]
 
         pv = jax.vmap(jax.jacfwd(momentum, argnums=2))(ts, q, dq / h)
-        work = _work_dtype(dtype)  # inverses in float32 below 32 bits
+        work = lapack_dtype(dtype)  # inverses in float32 below 32 bits
         mass = jnp.einsum("j,jde->de", b, pv).astype(work)
         b, h = b.astype(work), h.astype(work)
         span = jax.tree_util.tree_map(

@@ -75,7 +75,7 @@ def _check_roots(upper, what: str):
 
 
 @functools.cache
-def _gauss_legendre_exact(n: int) -> tuple[tuple, tuple]:
+def gauss_legendre_exact(n: int) -> tuple[tuple, tuple]:
     """The Gauss–Legendre rule on `[0, 1]` in extended precision, upper half only.
 
     Returns `(nodes, weights)`, mpmath numbers in increasing node order: the middle node 1/2
@@ -102,7 +102,7 @@ def _gauss_legendre_exact(n: int) -> tuple[tuple, tuple]:
 
 
 @functools.cache
-def _gauss_lobatto_upper(degree: int) -> tuple:
+def gauss_lobatto_upper(degree: int) -> tuple:
     """The interior Gauss–Lobatto points of `degree` (roots of `P'_degree`) on `[0, 1]` that
     lie above 1/2, increasing, in extended precision."""
     import mpmath
@@ -201,7 +201,7 @@ def _gauss_legendre(n: int, dtype_name: str = "float64") -> tuple[np.ndarray, np
     from extended precision: nodes exactly symmetric (`symmetric_points`), each weight pair
     rounded once (so equal) in the direction that brings the sum closest to 1."""
     dtype = np.dtype(dtype_name)
-    nodes, weights = _gauss_legendre_exact(n)
+    nodes, weights = gauss_legendre_exact(n)
     odd = n % 2
     c = symmetric_points(nodes[odd:], dtype, middle=bool(odd))
     w = _balanced_weights(weights, [1] * odd + [2] * (n // 2), dtype)

@@ -13,11 +13,9 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, PyTree
+from jaxtyping import Array
 
 from .ansatz.base import AbstractBasis
-from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
 from .degenerate import (
     CONSTRAINT_GROWTH,
@@ -32,16 +30,15 @@ from .formulation import (
     stage_values,
 )
 from .interpolation import NetworkInterpolation
-from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
+from .nonlinear import LevenbergMarquardt
 from .oga import OGA, OGA1d, OGAReference
+from .precision import compensated_add
 from .projection import RoundoffNewton, UniformLayer, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
-from .results import STEP_FAILURES, StepReport, from_root_find
+from .results import STEP_FAILURES, StepReport
 from .seeding.fit import AbstractParameterSeed
 from .seeding.policy import (
-    Seed,
     SeedPolicy,
-    SeedRecord,
     check_seed_options,
     needs_all_parameter_step,
 )
@@ -49,76 +46,13 @@ from .seeding.policy import residual_scale as _residual_scale
 from .seeding.trajectories import (
     AbstractInitialTrajectory,
     IntegratorExtrapolation,
-    StepHistory,
 )
 from .solver_options import check_options
+from .solver_state import NetworkVIState
+from .step_solve import companion_error, solve_all, solve_projected
 from .terms import AbstractMechanicalTerm, unwrap_term
 
 __all__ = ["NetworkVI", "NetworkVIState"]
-
-
-class NetworkVIState(eqx.Module):
-    """What `NetworkVI` carries from step to step (read it with `SaveAt(solver_state=True)`).
-
-    - `seed`: what the seed policy carries (`diffrax_vi.seeding.policy.SeedRecord`), also
-      read as the state's own attributes:
-      - `theta`: the last converged parameters; before the first step they are zeros and
-        `fresh` is true (the first step is always seeded by a trajectory fit).
-      - `h_prev`: the length of the step `theta` belongs to.
-      - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
-    - `iterations`: total nonlinear iterations over all accepted steps.
-    - `last_iterations`, `max_iterations`: of the last step, and the most of any step.
-    - `steps`: number of steps taken.
-    - `histogram`: `histogram[k]` = number of steps that needed `k` iterations (the last
-      bin also counts steps that ran out of iterations), e.g. for the median per step.
-    - `warm_starts`: number of steps seeded by `PreviousStep`'s warm start (the others were
-      seeded by a trajectory fit).
-    - `refits`: number of steps seeded by the previous step's neurons with refitted output
-      weights instead of a fresh OGA fit (`NetworkVI.reuse_neurons`).
-    - `restarts`: number of steps whose solve failed from a seed carried over from the
-      previous step (warm start or refit) and restarted from a fresh trajectory fit (with
-      `LevenbergMarquardt` or `RegularisedNewton`; the iteration cap covers both tries).
-    - `iteration_log`: the iterations of each accepted step, in order, for the first
-      `NetworkVI.iteration_log` steps (empty by default).
-    - `report`: how the most recent step's nonlinear solve ended (`StepReport`: start time,
-      length, residual, tolerance, iterations, result). After a failed solve with constant
-      steps this is the failed step; `diffrax_vi.describe_failure(sol)` prints it.
-    - `first_constraint`: `report.constraint` of the run's first step (NaN before it), the
-      scale against which the constraint monitor measures growth.
-    - `compensation`: `(e_q, e_p)`, the rounding left over from adding the last step's
-      increments to `q` and `p` (compensated summation, `NetworkVI.compensated`): the
-      state is `y + compensation` to about twice the working precision. Zeros when off.
-    """
-
-    seed: SeedRecord
-    iterations: Array
-    last_iterations: Array
-    max_iterations: Array
-    steps: Array
-    histogram: Array
-    warm_starts: Array
-    refits: Array
-    restarts: Array
-    iteration_log: Array
-    report: StepReport
-    first_constraint: Array
-    compensation: tuple[Array, Array]
-
-    @property
-    def theta(self) -> PyTree:
-        return self.seed.theta
-
-    @property
-    def fresh(self) -> Array:
-        return self.seed.fresh
-
-    @property
-    def h_prev(self) -> Array:
-        return self.seed.h_prev
-
-    @property
-    def history(self) -> StepHistory:
-        return self.seed.history
 
 
 class NetworkVI(diffrax.AbstractImplicitSolver):
@@ -265,13 +199,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return not isinstance(self.formulation, VariableProjection) and not self.basis.linear
 
     @property
-    def _companion_root_finder(self) -> optx.AbstractRootFinder:
-        """The root finder of the error estimate's cGVI companion."""
-        if isinstance(self.root_finder, RoundoffNewton):
-            return LevenbergMarquardt()
-        return self.root_finder
-
-    @property
     def interpolation_cls(self):  # type: ignore[override]
         nodes = tuple(float(c) for c in self.quadrature.nodes_weights_np()[0])
         return _interpolation_factory(self.basis, self.formulation, nodes)
@@ -296,7 +223,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return StepContext(term, basis, t, h, q0, p0, args, nodes, weights)
 
     @property
-    def _seeding(self) -> SeedPolicy:
+    def seed_policy(self) -> SeedPolicy:
         """The seed policy of this solver's options."""
         return SeedPolicy.build(
             self.basis, self.formulation, self.root_finder,
@@ -318,7 +245,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         check_times(t0=t0, t1=t1)
         t0 = refuse_nonfinite_times(t0, t1)
         ctx = self._context(terms, t0, t1, y0, args)
-        seed = self._seeding.first_record(ctx)
+        seed = self.seed_policy.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
         return NetworkVIState(
             seed=seed,
@@ -360,22 +287,31 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """Seed -> solve -> accept."""
         ctx = self._context(terms, t0, t1, y0, args)
         state = solver_state
-        seeding = self._seeding
+        seeding = self.seed_policy
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
         if isinstance(self.formulation, VariableProjection):
-            theta, increments, n, result, residual, tolerance, restarted = (
-                self._solve_projected(ctx, *seed.start, restart_history=seed.restart_history)
+            theta, (dq, dp), n, result, residual, tolerance, restarted = solve_projected(
+                self, ctx, *seed.start, restart_history=seed.restart_history
             )
-            (q1, p1), compensation = self._add_increments(ctx, increments, state.compensation)
+            if self.compensated:
+                (q1, eq), (p1, ep) = (
+                    compensated_add(x, d, e)
+                    for x, d, e in zip((ctx.q0, ctx.p0), (dq, dp), state.compensation,
+                                       strict=True)
+                )
+                compensation = (eq, ep)
+            else:
+                q1, p1 = ctx.q0 + dq.astype(ctx.q0.dtype), ctx.p0 + dp.astype(ctx.p0.dtype)
+                compensation = state.compensation
             # A first-order Lagrangian's end state is moved onto its primary constraint
             # (no change for any other); a moved coordinate carries no compensation.
             moved, violation = end_on_constraint(ctx, q1, p1)
             compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
             q1 = moved
         else:
-            theta, (q1, p1), n, result, residual, tolerance, restarted = self._solve_all(
-                ctx, seed
+            theta, (q1, p1), n, result, residual, tolerance, restarted = solve_all(
+                self, ctx, seed
             )
             compensation = state.compensation
             violation = None
@@ -386,105 +322,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return self._finish_step(
             ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
             compensation, violation,
-        )
-
-    def _add_increments(self, ctx: StepContext, increments, compensation):
-        """`(q_n + Δq, p_n + Δp)`, by compensated summation when `compensated`: the rounding
-        carried from the last step is added to the increment, and the rounding of this sum
-        is carried to the next (`two_sum`, exact in any binary floating-point format)."""
-        dq, dp = (d.astype(x.dtype) for d, x in zip(increments, (ctx.q0, ctx.p0), strict=True))
-        if not self.compensated:
-            return (ctx.q0 + dq, ctx.p0 + dp), compensation
-        eq, ep = compensation
-        q1, eq = two_sum(ctx.q0, dq + eq)
-        p1, ep = two_sum(ctx.p0, dp + ep)
-        return (q1, p1), (eq, ep)
-
-    def _solve_projected(self, ctx: StepContext, hidden, curve, p1_start, restart_history=None):
-        """The step's equations on the feature span of the hidden layer of the parameters
-        `hidden`, from the curve `τ ↦ curve(τ)` projected on it and `p1_start`
-        (`VariableProjection`).
-
-        Given `restart_history` (the steps that start from the previous curve continued), a
-        start that has not converged within `_FIRST_TRY` iterations is given up for the
-        trajectory seed of `initial_trajectory` (its labels, piecewise linear in `τ`)
-        projected on the span; the iteration cap covers both tries."""
-        form = self.formulation
-        span = form.span(hidden, ctx)
-        z0 = jax.lax.stop_gradient(form.start(curve, p1_start, span, ctx))
-        cap = self.root_find_max_steps
-        restart = None
-        if restart_history is not None and cap > _FIRST_TRY:
-            # Inside the root finder, so that the trajectory seed is computed only where a
-            # solve needs it, and under vmap only if some member does.
-            seeding = self._seeding
-
-            def start(args):
-                ctx, span, history = args
-                return seeding.restart_point(ctx, span, history)
-
-            restart = (_FIRST_TRY, start)
-        sol = self._projected_root(ctx, span, z0, cap, restart, restart_history)
-        z, f, n, result = sol.value, sol.state.f, sol.stats["num_steps"], sol.result
-        restarted = jnp.asarray(getattr(sol.state, "restarted", False))
-        theta = form.expand(form.coefficients(z[0], ctx), span)
-        increments = form.projected_increments(z, span, ctx)
-        scale = _residual_scale(ctx)
-        residual = jax.lax.stop_gradient(jnp.max(jnp.abs(f)).astype(ctx.q0.dtype))
-        eps = float(jnp.finfo(ctx.q0.dtype).eps)
-        tolerance = (self.root_finder.ftol * eps * scale).astype(ctx.q0.dtype)
-        n = jnp.asarray(n, jnp.int32)
-        return theta, increments, n, from_root_find(result), residual, tolerance, restarted
-
-    def _projected_root(self, ctx: StepContext, span, z0, max_steps: int, restart=None,
-                        history=None):
-        form = self.formulation
-        options = dict(
-            scale=_residual_scale(ctx),
-            jacobian=form.reduced_jacobian,
-            kinetic=functools.partial(form.kinetic_inverse, uniform=form.uniform_span(span)),
-        )
-        if restart is not None:
-            options["restart"] = restart
-        return optx.root_find(
-            form.reduced_residual,
-            self.root_finder,
-            z0,
-            (ctx, span, history),
-            options=options,
-            max_steps=max_steps,
-            adjoint=self.adjoint,
-            throw=False,
-        )
-
-    def _solve_all(self, ctx: StepContext, seed: Seed):
-        """The step's equations in all the ansatz parameters (the reference's solve), from
-        `seed` with the seed policy's fallback."""
-        x0, seed_args, seed_options = self._seeding.root_find_start(seed)
-        jacobian = _jacobian_option(self.root_finder, self.formulation, ctx)
-        options = dict(
-            scale=_residual_scale(ctx),
-            outputs=lambda x: self.formulation.end_state(x, ctx),
-            jacobian=None if jacobian is None else lambda x, a: jacobian(x, a[0]),
-            **seed_options,
-        )
-        sol = optx.root_find(
-            lambda x, a: self.formulation.residual(x, a[0]),
-            self.root_finder,
-            x0,
-            (ctx, *seed_args),
-            options=options,
-            max_steps=self.root_find_max_steps,
-            adjoint=self.adjoint,
-            throw=False,
-        )
-        x = sol.value
-        residual, tolerance = self._final_residual(sol, ctx)
-        n = jnp.asarray(sol.stats["num_steps"], jnp.int32)
-        restarted = jnp.asarray(getattr(sol.state, "restarted", False))
-        return (
-            x[0], self.formulation.end_state(x, ctx), n, from_root_find(sol.result), residual,
-            tolerance, restarted,
         )
 
     def _finish_step(
@@ -551,7 +388,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 lambda a: jnp.where(failed, jnp.asarray(jnp.nan, a.dtype), a), dense_info[key]
             )
         new_state = NetworkVIState(
-            seed=self._seeding.accept(ctx, record, theta, curve, q1),
+            seed=self.seed_policy.accept(ctx, record, theta, curve, q1),
             iterations=state.iterations + n,
             last_iterations=n,
             max_iterations=jnp.maximum(state.max_iterations, n),
@@ -582,60 +419,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         y_error = None
         if self.error_estimate is not None:
             ok = (result == diffrax.RESULTS.successful) & finite
-            y_error = self._companion_error(ctx, curve, q1, p1, ok)
+            y_error = companion_error(self, ctx, curve, q1, p1, ok)
         return (q1, p1), y_error, dense_info, new_state, result
-
-    def _final_residual(self, sol, ctx: StepContext) -> tuple[Array, Array]:
-        """`max|F|` where the step's solve stopped, and the residual it needed to reach."""
-        dtype = ctx.q0.dtype
-        if isinstance(self.root_finder, AbstractDampedNewton):
-            f = sol.state.f
-            ftol = self.root_finder._tols(dtype)["ftol"]
-            tolerance = (ftol * _residual_scale(ctx)).astype(dtype)
-        else:
-            f = ravel_pytree(self.formulation.residual(sol.value, ctx))[0]
-            tolerance = jnp.full((), jnp.nan, dtype)
-        residual = jnp.max(jnp.abs(f)).astype(dtype)
-        return jax.lax.stop_gradient(residual), tolerance
-
-    def _companion_error(self, ctx: StepContext, curve, q1, p1, ok) -> tuple[Array, Array]:
-        """End-state difference to the cGVI of degree `error_estimate` (inf on failure)."""
-        degree = self.error_estimate
-        basis = LagrangeBasis(degree)
-        nodes, weights = GaussLegendre(degree + 1).nodes_weights(ctx.q0.dtype)
-        companion = StepContext(
-            ctx.term, basis, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, nodes, weights
-        )
-        points = jnp.asarray(basis.control_points, ctx.q0.dtype)
-        seed = jax.lax.stop_gradient((jax.vmap(curve)(points), p1))
-        form = FreeEndpoints()
-        sol = optx.root_find(
-            lambda x, c: form.residual(x, c),
-            self._companion_root_finder,
-            seed,
-            companion,
-            options=dict(
-                scale=_residual_scale(ctx), outputs=lambda x: form.end_state(x, companion),
-                jacobian=_jacobian_option(self._companion_root_finder, form, companion),
-            ),
-            max_steps=self.root_find_max_steps,
-            adjoint=self.adjoint,
-            throw=False,
-        )
-        qc, pc = form.end_state(sol.value, companion)
-        good = ok & (sol.result == optx.RESULTS.successful)
-        inf = jnp.asarray(jnp.inf, ctx.q0.dtype)
-        eq = jnp.where(good, (q1 - qc).astype(ctx.q0.dtype), inf)
-        ep = jnp.where(good, (p1 - pc).astype(ctx.p0.dtype), inf)
-        return jax.lax.stop_gradient((eq, ep))
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
-
-
-# Iterations the projected step allows its start from the previous curve continued before it
-# restarts from the trajectory seed (`NetworkVI._solve_projected`).
-_FIRST_TRY = 16
 
 
 @functools.cache
@@ -653,29 +441,6 @@ def _interpolation_factory(
     return functools.partial(
         NetworkInterpolation, basis=basis, formulation=formulation, nodes=nodes
     )
-
-
-def _jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepContext):
-    """The Jacobian the solver hands its root finder (`options["jacobian"]`, a function of the
-    unknowns and the step context): the block assembly of `formulation` where the root
-    finder asks for it (`jacobian="structured"`), or leaves the choice to us (`"auto"`) and
-    the blocks have a closed form; else `None`. The context comes in as the root find's
-    `args`, not by closure, so that implicit differentiation of the step sees it."""
-    mode = getattr(root_finder, "jacobian", None)
-    if mode == "structured" or (
-        mode == "auto" and formulation.has_closed_form_jacobian(ctx.basis)
-    ):
-        return formulation.jacobian
-    return None
-
-
-def two_sum(a: Array, b: Array) -> tuple[Array, Array]:
-    """`(s, e)` with `s = fl(a + b)` and `a + b = s + e` exactly (Knuth's TwoSum: no
-    condition on the sizes of `a` and `b`)."""
-    s = a + b
-    b_part = s - a
-    a_part = s - b_part
-    return s, (a - a_part) + (b - b_part)
 
 
 def _check_state(y0: Any) -> tuple[Array, Array]:

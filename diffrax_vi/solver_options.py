@@ -4,7 +4,7 @@ formulation against the root finder."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 from .ansatz.base import AbstractBasis
 from .formulation import AbstractFormulation, FreeEndpoints
@@ -12,14 +12,12 @@ from .nonlinear import AbstractDampedNewton
 from .projection import RoundoffNewton, VariableProjection
 from .quadrature import AbstractQuadrature
 
-if TYPE_CHECKING:
-    from .solver import NetworkVI
-
 __all__ = ["check_options"]
 
 
-def check_options(solver: NetworkVI) -> None:
-    """Raise a `TypeError` or `ValueError` naming the first option of `solver` that is wrong."""
+def check_options(solver: Any) -> None:
+    """Raise a `TypeError` or `ValueError` naming the first option of `solver` (a `NetworkVI`)
+    that is wrong."""
     if not isinstance(solver.basis, AbstractBasis):
         raise TypeError(f"basis must be an ansatz such as ShallowNetBasis, got {solver.basis!r}")
     if not isinstance(solver.quadrature, AbstractQuadrature):

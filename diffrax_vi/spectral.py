@@ -32,7 +32,7 @@ import math
 from typing import Any
 
 from .methods import CGVI
-from .quadrature import GaussLegendre, _gauss_legendre_exact
+from .quadrature import GaussLegendre, gauss_legendre_exact
 from .solver import NetworkVI
 
 __all__ = ["SpectralCGVI", "spectral_degree", "spectral_step_error"]
@@ -82,7 +82,7 @@ def _galerkin_matrices(degree: int, digits: int = _DIGITS):
     import mpmath
 
     with mpmath.workdps(digits):
-        nodes, weights = _gauss_legendre_exact(degree + 2)
+        nodes, weights = gauss_legendre_exact(degree + 2)
         odd = (degree + 2) % 2
         c = [1 - v for v in reversed(nodes[odd:])] + list(nodes)
         w = list(reversed(weights[odd:])) + list(weights)

@@ -11,7 +11,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.solver import two_sum
+from diffrax_vi.precision import two_sum
 
 
 def test_two_sum_is_exact():

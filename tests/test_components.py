@@ -923,7 +923,7 @@ def test_network_jet_applies_only_where_its_formulas_hold():
 def test_auto_jacobian_hands_the_closed_form_to_the_root_finder():
     """Under `jacobian="auto"` NetworkVI passes its block Jacobian exactly where
     it has a closed form, and the root finder differentiates otherwise."""
-    from diffrax_vi.solver import _jacobian_option
+    from diffrax_vi.step_solve import jacobian_option as _jacobian_option
 
     problem = problems.double_pendulum(dtype=F64)
     auto, fwd = LevenbergMarquardt(jacobian="auto"), LevenbergMarquardt()

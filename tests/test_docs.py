@@ -277,7 +277,7 @@ def screenshot_is_a_page(path: Path) -> None:
             [
                 'id="diffrax_vi.solver.NetworkVI"',
                 'id="diffrax_vi.methods.ShallowNet"',
-                'id="diffrax_vi.solver.NetworkVIState"',
+                'id="diffrax_vi.solver_state.NetworkVIState"',
                 "doc-signature",
             ],
         ),

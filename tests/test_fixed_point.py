@@ -11,6 +11,7 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.fixed_point import FixedPointIteration
+from diffrax_vi.step_solve import projected_root_find
 
 jax.config.update("jax_enable_x64", True)
 
@@ -76,9 +77,9 @@ def test_same_root_as_newton_on_a_step(name, kind):
     @jax.jit
     def solve(y0):
         ctx, span, z0 = step_system(newton, problem, h)
-        a = newton._projected_root(ctx, span, z0, 50)
+        a = projected_root_find(newton, ctx, span, z0, 50)
         start = jax.tree_util.tree_map(lambda x: x * (1 + 1e-3) + 1e-4, a.value)
-        b = chord._projected_root(ctx, span, start, 50)
+        b = projected_root_find(chord, ctx, span, start, 50)
         end = newton.formulation.projected_end_state
         return end(a.value, span, ctx), end(b.value, span, ctx), a.result, b.result, b.state
 
@@ -195,7 +196,7 @@ def test_refresh_speeds_up_a_slow_chord_on_a_step():
         for rf in (FixedPointIteration(ftol=0.0), FixedPointIteration(ftol=0.0, refresh=0.1)):
             solver = dvi.CGVI(6, root_finder=rf)
             ctx, span, z0 = step_system(solver, problem, 0.5)
-            sol = solver._projected_root(ctx, span, z0, 100)
+            sol = projected_root_find(solver, ctx, span, z0, 100)
             out.append((sol.value, sol.result, sol.stats["num_steps"], sol.state.refreshes))
         return out
 

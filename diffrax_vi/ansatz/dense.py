@@ -11,7 +11,7 @@ from jaxtyping import Array
 
 from ..activations import activation_name, check_activation
 from .base import AbstractBasis
-from .shallow import _network_min_nodes
+from .shallow import network_min_nodes
 
 __all__ = ["DenseNetBasis"]
 
@@ -127,7 +127,7 @@ class DenseNetBasis(AbstractBasis):
         check_activation(self.activation, dtype)
 
     def min_nodes(self) -> int:
-        return _network_min_nodes(self.width2)
+        return network_min_nodes(self.width2)
 
     def __repr__(self):
         return (

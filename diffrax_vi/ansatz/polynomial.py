@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..interpolation import lagrange_weights
-from ..quadrature import _gauss_lobatto_upper, symmetric_points
+from ..quadrature import gauss_lobatto_upper, symmetric_points
 from .base import AbstractBasis
 
 __all__ = ["LagrangeBasis", "lobatto_points"]
@@ -27,7 +27,7 @@ def lobatto_points(degree: int) -> tuple[float, ...]:
     symmetric about 1/2 (`τ_k + τ_{degree-k} == 1`)."""
     if degree == 1:
         return (0.0, 1.0)
-    upper = _gauss_lobatto_upper(degree)
+    upper = gauss_lobatto_upper(degree)
     points = symmetric_points(upper, np.float64, middle=degree % 2 == 0, ends=True)
     return tuple(float(v) for v in points)
 

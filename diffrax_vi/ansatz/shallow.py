@@ -18,7 +18,7 @@ from .base import AbstractBasis
 __all__ = ["ShallowNetBasis", "NetworkJet"]
 
 
-def _network_min_nodes(width: int) -> int:
+def network_min_nodes(width: int) -> int:
     """Nodes a network with `width` output weights needs: each node shows the action the
     value and the slope of the curve, so `2R >= width`. Measured on the harmonic oscillator
     (5 steps of 0.1, tanh): width 10 fails with 1 to 4 Gauss nodes and works with 5. The rule
@@ -245,7 +245,7 @@ class ShallowNetBasis(AbstractBasis):
         check_activation(self.activation, dtype)
 
     def min_nodes(self) -> int:
-        return _network_min_nodes(self.width)
+        return network_min_nodes(self.width)
 
     def __repr__(self):
         extra = "" if not self.mirrored else f", symmetry={type(self.symmetry).__name__}()"

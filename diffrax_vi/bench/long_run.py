@@ -823,9 +823,9 @@ def _span_name(units: Mapping[str, str], problem: str, periods: Any) -> str:
 
 def _plot(rows: Sequence[dict], problem: str, key: str, label: str, path: str,
           units: Mapping[str, str]) -> None:
-    from .report import _pyplot
+    from .report import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     rs = [r for r in rows if r["problem"] == problem]
     spans = list(dict.fromkeys(r["periods"] for r in rs))
     fig, axes = plt.subplots(1, len(spans), figsize=(5.5 * len(spans), 4.2), squeeze=False)
@@ -854,13 +854,13 @@ def _plot_growth(series: Sequence[dict], rows: Sequence[dict], path: str,
                  units: Mapping[str, str]) -> None:
     """Running maximum of the energy error against time on the longest span: each solver's
     run at its smallest step or tolerance."""
-    from .report import _grid, _pyplot
+    from .report import pyplot, subplot_grid
 
-    plt = _pyplot()
+    plt = pyplot()
     problems = list(dict.fromkeys(r["problem"] for r in series))
     if not problems:
         return
-    nr, nc = _grid(len(problems))
+    nr, nc = subplot_grid(len(problems))
     fig, axes = plt.subplots(nr, nc, figsize=(5.5 * nc, 4.2 * nr), squeeze=False)
     for ax, problem in zip(axes.flat, problems, strict=False):
         ok = [r for r in _ok(rows) if r["problem"] == problem]

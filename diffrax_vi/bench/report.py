@@ -197,7 +197,8 @@ def stability_table(rows: Sequence[dict]) -> str:
 
 
 # -- plots -------------------------------------------------------------------------------------
-def _pyplot():
+def pyplot():
+    """matplotlib's `pyplot` on the file-only Agg backend (imported on first use)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -206,7 +207,8 @@ def _pyplot():
     return plt
 
 
-def _grid(n: int):
+def subplot_grid(n: int):
+    """`(rows, columns)` of a grid of `n` panels, at most three to a row."""
     cols = min(n, 3)
     rows = math.ceil(n / cols)
     return rows, cols
@@ -214,9 +216,9 @@ def _grid(n: int):
 
 def plot_work_precision(rows: Sequence[dict], path) -> None:
     """Wall time against final error, one panel per problem, one line per solver."""
-    plt = _pyplot()
+    plt = pyplot()
     problems = list(dict.fromkeys(r["problem"] for r in rows))
-    nr, nc = _grid(len(problems))
+    nr, nc = subplot_grid(len(problems))
     fig, axes = plt.subplots(nr, nc, figsize=(5 * nc, 4 * nr), squeeze=False)
     for ax, problem in zip(axes.flat, problems, strict=False):
         for solver in dict.fromkeys(r["solver"] for r in rows if r["problem"] == problem):
@@ -247,9 +249,9 @@ def save_grid(plt, fig, axes, used: int, path) -> None:
 
 def plot_energy(rows: Sequence[dict], path) -> None:
     """Running maximum of the relative energy error against time, per problem."""
-    plt = _pyplot()
+    plt = pyplot()
     problems = list(dict.fromkeys(r["problem"] for r in rows))
-    nr, nc = _grid(len(problems))
+    nr, nc = subplot_grid(len(problems))
     fig, axes = plt.subplots(nr, nc, figsize=(5 * nc, 4 * nr), squeeze=False)
     for ax, problem in zip(axes.flat, problems, strict=False):
         runs = dict.fromkeys((r["solver"], r["value"]) for r in rows if r["problem"] == problem)
@@ -274,7 +276,7 @@ def plot_energy(rows: Sequence[dict], path) -> None:
 def plot_convergence_heatmap(rows: Sequence[dict], path) -> None:
     """Convergence rate (ok / cases) per nonlinear solver × precision, one panel per problem
     and one for all problems together."""
-    plt = _pyplot()
+    plt = pyplot()
     rows = [r for r in rows if (r.get("acceptance") or "strict") == "strict"]
     problems = list(dict.fromkeys(r["problem"] for r in rows))
     solvers = list(dict.fromkeys(r["solver"] for r in rows))

@@ -58,7 +58,7 @@ from ..oga import (
     WeightedQR,
     oga_fit,
 )
-from ..oga.greedy import _oga_fit_impl
+from ..oga.greedy import oga_fit_traced
 from ..oga.reference import oga_reference_fit
 from ..oga.symmetry import NoSymmetry
 from ..quadrature import Simpson
@@ -167,7 +167,7 @@ def _fit_batch(config, nodes, weights, ys, indices):
             return oga_reference_fit(
                 activation, nodes, weights, y, WIDTH, BIAS_INTERVAL, DICT_AMOUNT
             )
-        return _oga_fit_impl(
+        return oga_fit_traced(
             config, activation, nodes, weights, y, WIDTH, BIAS_INTERVAL, DICT_AMOUNT, None,
             NoSymmetry(),
         )  # fmt: skip

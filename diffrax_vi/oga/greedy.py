@@ -265,7 +265,7 @@ def _greedy_jit(config, activation, dic, nodes, yhat, width, symmetry):
 def _oga_fit_jit(
     config, activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
 ):
-    return _oga_fit_impl(
+    return oga_fit_traced(
         config,
         activation,
         nodes,
@@ -366,7 +366,7 @@ def _cached_dictionary(
     return dic
 
 
-def _oga_fit_impl(
+def oga_fit_traced(
     config: OGA,
     activation: Callable,
     nodes: Array,
@@ -378,6 +378,8 @@ def _oga_fit_impl(
     modulation: Array | None,
     symmetry: AbstractSymmetry,
 ) -> OGAResult:
+    """`oga_fit` inside a function being traced: no checks of the arguments and no jit of its
+    own (the seed-quality study vmaps it over targets)."""
     dic = _build_dictionary(
         config, activation, nodes, weights, bias_interval, dict_amount, modulation, symmetry
     )
