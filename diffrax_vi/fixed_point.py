@@ -23,12 +23,12 @@ from jaxtyping import Array
 
 from .lazy import unless_all_skip
 from .precision import lapack_dtype
-from .projection import RoundoffNewton, _NewtonState
+from .projection import NewtonState, RoundoffNewton
 
 __all__ = ["FixedPointIteration"]
 
 
-class _ChordState(_NewtonState):
+class _ChordState(NewtonState):
     factors: tuple[Array, ...]
     contraction: Array
     refreshes: Array

@@ -580,7 +580,9 @@ class KineticInverse(eqx.Module):
         return out[: k * dim].reshape(k, dim), out[k * dim :]
 
 
-class _NewtonState(eqx.Module):
+class NewtonState(eqx.Module):
+    """Where `RoundoffNewton`'s iteration stands (`FixedPointIteration`'s state extends it)."""
+
     f: Array
     step_norm: Array
     converged: Array
@@ -684,7 +686,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
         # Never converged at the start: in low precision the tolerance can be as large as the
         # start's residual, and a step must make at least one Newton update.
         no = jnp.array(False)
-        return _NewtonState(flat, inf, no, no, jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
+        return NewtonState(flat, inf, no, no, jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
                             no)
 
     def step(self, fn, y, args, options, state, tags):
@@ -755,7 +757,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
             converged = converged & ~give_up
             at_floor = at_floor & ~give_up
             restarted = restarted | give_up
-        state = _NewtonState(f_new, step_norm, converged, at_floor, stalls, iterations, restarted)
+        state = NewtonState(f_new, step_norm, converged, at_floor, stalls, iterations, restarted)
         return unravel(new), state, aux
 
     def terminate(self, fn, y, args, options, state, tags):

@@ -128,14 +128,14 @@ def relative_error(q: np.ndarray, q_ref: np.ndarray) -> float:
     return err / scale if scale > 0 else err
 
 
-def _energy_fn(problem: Problem) -> Callable:
+def energy_fn(problem: Problem) -> Callable:
     def energy(ts, qs, ps):
         return jax.vmap(lambda t, q, p: problem.energy(t, q, p))(ts, qs, ps)
 
     return jax.jit(energy)
 
 
-def _energy_errors(problem: Problem, energy, ts, qs, ps) -> np.ndarray:
+def energy_errors(problem: Problem, energy, ts, qs, ps) -> np.ndarray:
     """`|H(t) − H(t0)| / |H(t0)|` along a trajectory, evaluated in float64."""
     h = np.asarray(energy(jnp.asarray(ts, jnp.float64), jnp.asarray(qs, jnp.float64),
                           jnp.asarray(ps, jnp.float64)))
@@ -233,7 +233,7 @@ def _iteration_cap(solver) -> int | None:
     return getattr(solver, "root_find_max_steps", None)
 
 
-def _diffrax_metrics(problem, entry, sol) -> dict[str, Any]:
+def diffrax_metrics(problem, entry, sol) -> dict[str, Any]:
     status = classify(sol, iteration_cap=_iteration_cap(getattr(entry, "solver", None)))
     stats = sol.stats
     row: dict[str, Any] = dict(
@@ -271,7 +271,7 @@ def _closed_form_rhs(problem: Problem) -> Callable | None:
     return None
 
 
-def _numpy_rhs(problem: Problem) -> tuple[Callable, str]:
+def numpy_rhs(problem: Problem) -> tuple[Callable, str]:
     rhs = getattr(problem.reference_flow, "rhs", None) or _closed_form_rhs(problem)
     if rhs is not None:
         return (lambda t, y: rhs(y)), "numpy"
@@ -286,11 +286,11 @@ def _numpy_rhs(problem: Problem) -> tuple[Callable, str]:
     return (lambda t, y: np.asarray(vf(t, jnp.asarray(y)))), "jax"
 
 
-def _scipy_run(problem: Problem, entry: SciPy, t1: float, rtol: float, repeats: int,
+def scipy_run(problem: Problem, entry: SciPy, t1: float, rtol: float, repeats: int,
                budget_s: float, t_eval=None):
     from scipy.integrate import solve_ivp
 
-    fun, _ = _numpy_rhs(problem)
+    fun, _ = numpy_rhs(problem)
     y0 = np.concatenate([np.asarray(x, np.float64) for x in problem.y0])
     kwargs = dict(method=entry.method, rtol=rtol, atol=rtol * entry.atol_ratio, t_eval=t_eval)
     fun(problem.t0, y0)  # compile the JAX fallback outside the timing
@@ -367,7 +367,7 @@ def work_precision(
     for entry in solvers:
         for value in _values_for(entry, steps if isinstance(entry, Fixed) else rtols) or ():
             _check_run(entry, value)
-    energy = _energy_fn(problem)
+    energy = energy_fn(problem)
     t1 = problem.t1
     q_ref = problem.reference(np.array([t1]))[0][0]
     saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
@@ -384,7 +384,7 @@ def work_precision(
             )
             try:
                 if isinstance(entry, SciPy):
-                    res, wall, n = _scipy_run(problem, entry, t1, value, repeats, budget_s)
+                    res, wall, n = scipy_run(problem, entry, t1, value, repeats, budget_s)
                     d = problem.dim
                     ts, q, p = res.t, res.y[:d].T, res.y[d:].T
                     row.update(status=classify(res), steps=len(res.t) - 1, rejected=None,
@@ -399,14 +399,14 @@ def work_precision(
                     sol, wall, compile_s, n = _repeat(
                         runner.solve, runner.arguments(t1, value), repeats, budget_s
                     )
-                    row.update(_diffrax_metrics(problem, entry, sol))
+                    row.update(diffrax_metrics(problem, entry, sol))
                     row.update(wall_s=wall, compile_s=compile_s, repeats=n)
                     ts, q, p = _trajectory(sol)
                 row["t_end"] = float(ts[-1])
                 reached = math.isclose(float(ts[-1]), t1, rel_tol=1e-9, abs_tol=1e-12)
                 if row["status"] == "ok" and reached:
                     row["error"] = relative_error(q[-1], q_ref)
-                    row["energy_error"] = float(np.max(_energy_errors(problem, energy, ts, q,
+                    row["energy_error"] = float(np.max(energy_errors(problem, energy, ts, q,
                                                                       p)))
                 elif row["status"] == "ok":
                     row["status"] = "error:EndNotReached"
@@ -445,7 +445,7 @@ def long_time_energy(
         raise ValueError(f"samples must be at least 2, got {samples}")
     for entry, value in runs:
         _check_run(entry, value)
-    energy = _energy_fn(problem)
+    energy = energy_fn(problem)
     t0, t1 = problem.t0, problem.t1
     saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
     rows: list[dict[str, Any]] = []
@@ -458,7 +458,7 @@ def long_time_energy(
                     parameter=entry.parameter, value=value, horizon=t1 - t0)
         try:
             if isinstance(entry, SciPy):
-                res, wall, _ = _scipy_run(problem, entry, t1, value, 1, 0.0)
+                res, wall, _ = scipy_run(problem, entry, t1, value, 1, 0.0)
                 d = problem.dim
                 ts, q, p = res.t, res.y[:d].T, res.y[d:].T
                 meta = dict(status=classify(res), steps=len(ts) - 1, wall_s=wall,
@@ -482,10 +482,10 @@ def long_time_energy(
                     full = runner.arguments(t1, value)
                 _, compile_s = timed(runner.solve, *short)
                 sol, wall = timed(runner.solve, *full)
-                meta = _diffrax_metrics(problem, entry, sol)
+                meta = diffrax_metrics(problem, entry, sol)
                 meta.update(wall_s=wall, compile_s=compile_s)
                 ts, q, p = _trajectory(sol)
-            err = _energy_errors(problem, energy, ts, q, p)
+            err = energy_errors(problem, energy, ts, q, p)
             envelope = np.maximum.accumulate(np.where(np.isfinite(err), err, np.inf))
             first = ts[1] if len(ts) > 1 else t1
             grid = np.geomspace(first - t0, ts[-1] - t0, samples) + t0

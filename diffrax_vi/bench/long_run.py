@@ -55,14 +55,14 @@ from .harness import (
     Fixed,
     NotSeparable,
     SciPy,
-    _diffrax_metrics,
-    _energy_errors,
-    _energy_fn,
-    _numpy_rhs,
-    _scipy_run,
+    diffrax_metrics,
+    energy_errors,
+    energy_fn,
     iteration_summary,
+    numpy_rhs,
     read_rows,
     relative_error,
+    scipy_run,
     timed,
     write_rows,
 )
@@ -394,7 +394,7 @@ def _envelope(err: np.ndarray) -> np.ndarray:
 
 def _energy_envelope(problem: Problem, energy, ts, q, p) -> np.ndarray:
     """Running maximum of `|H − H₀|/|H₀|` along a trajectory."""
-    return _envelope(_energy_errors(problem, energy, np.asarray(ts), np.asarray(q),
+    return _envelope(energy_errors(problem, energy, np.asarray(ts), np.asarray(q),
                                     np.asarray(p)))
 
 
@@ -421,7 +421,7 @@ def _scipy_step_ends(problem: Problem, entry: SciPy, rtol: float, grid: np.ndarr
     output). Returns `(steps, ts, q, p)` or `None` if it failed."""
     import scipy.integrate
 
-    fun, _ = _numpy_rhs(problem)
+    fun, _ = numpy_rhs(problem)
     y0 = np.concatenate([np.asarray(x, np.float64) for x in problem.y0])
     stepper = getattr(scipy.integrate, entry.method)(
         fun, problem.t0, y0, problem.t1, rtol=rtol, atol=rtol * entry.atol_ratio)
@@ -454,7 +454,7 @@ def _run_one(row: dict[str, Any], problem: Problem, entry: Entry, value: float, 
     d = problem.dim
     if isinstance(entry, SciPy):
         grid = np.append(_save_times(t0, t1, saves, None), t1)
-        res, wall, n = _scipy_run(problem, entry, t1, value, repeats, budget_s, t_eval=grid)
+        res, wall, n = scipy_run(problem, entry, t1, value, repeats, budget_s, t_eval=grid)
         row.update(status=classify(res), steps=None, nfev=res.nfev, wall_s=wall,
                    compile_s=0.0, repeats=n)
         if row["status"] != "ok":
@@ -488,7 +488,7 @@ def _run_one(row: dict[str, Any], problem: Problem, entry: Entry, value: float, 
         short_t1 = t0 + 0.1 * period
         short = (problem.y0, jnp.asarray(short_t1, f64), *tol, jnp.full(ts.shape, short_t1, f64))
     sol, wall, compile_s, n = _timed_runs(runner.solve, full, short, repeats, budget_s)
-    row.update(_diffrax_metrics(problem, entry, sol))
+    row.update(diffrax_metrics(problem, entry, sol))
     row.update(wall_s=wall, compile_s=compile_s, repeats=n)
     state = sol.solver_state
     if getattr(state, "histogram", None) is not None:
@@ -634,7 +634,7 @@ def run_study(
                              method=ref.method, error=ref.error,
                              float64_difference=ref.float64_difference, cost_s=ref.cost_s)],
                        paths[REFERENCE_NAME], append=True, columns=REFERENCE_COLUMNS)
-            energy = _energy_fn(problem)
+            energy = energy_fn(problem)
             for entry, sweep in entries:
                 rows += _sweep(name, config, periods, problem, entry, sweep, ref, energy, walls,
                                **settings)
