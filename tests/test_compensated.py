@@ -129,3 +129,14 @@ def test_confirming_update_removes_the_energy_bias_of_a_step():
     (biased, se_biased), (confirmed, se) = means[False], means[True]
     assert abs(biased) > 3 * se_biased, means
     assert abs(confirmed) < 3 * se, means
+
+
+def test_precision_vocabulary():
+    from diffrax_vi.precision import compensated_add, floating_dtype, lapack_dtype
+
+    assert lapack_dtype(jnp.float16) == np.float32 and lapack_dtype(jnp.float64) == np.float64
+    assert floating_dtype(jnp.ones(2, jnp.float16)) == np.float16
+    assert floating_dtype(jnp.ones(2, jnp.int32)) == jnp.result_type(float)
+    x, carried = jnp.float32(1.0), jnp.float32(0.0)
+    s, e = compensated_add(x, jnp.float64(2.0**-30), carried)
+    assert s.dtype == jnp.float32 and float(s) + float(e) == 1.0 + 2.0**-30
