@@ -13,10 +13,17 @@ Commands:
 - `all`: the three studies, then the report;
 - `long-run`: final error and energy error against wall time over long spans, variational
   solvers against classical peers (`diffrax_vi.bench.long_run`; `--out` defaults to
-  `benchmarks/results/long_run`, `--solvers` picks the variational solvers by substring).
+  `benchmarks/results/long_run`, `--solvers` picks the variational solvers by substring);
+- `seed-quality`: the OGA seed on its own, every configuration (`--quick`: the grid1d and
+  angular dictionaries), written to `seed_quality.csv` and `seed_quality.md`.
 
-Every study streams its rows to a CSV in `--out` as they are measured, so an interrupted run
-keeps its partial results. float64 is switched on here (the library itself never does).
+Where the cases run (`diffrax_vi.bench.executor`): by default on an embedded Dask
+`LocalCluster` of one worker per CPU (`--jobs N`: N workers; `--jobs 1`: in this process, no
+Dask), or on an existing Dask cluster (`--scheduler ADDRESS`). Every finished case is appended
+to `<study>.jsonl` in `--out` as it arrives, and the CSV is written from it; `--resume` keeps
+the cases already there, so an interrupted sweep goes on where it stopped. Without the
+`distributed` package the cases run in this process. float64 is switched on here (the library
+itself never does).
 """
 
 from __future__ import annotations
@@ -34,7 +41,67 @@ CSV = {
     "work-precision": "work_precision.csv",
     "energy": "long_time_energy.csv",
     "stability": "stability.csv",
+    "seed-quality": "seed_quality.csv",
 }
+
+
+class _Executors:
+    """The executor of this run, made on first need and closed at the end: in this process
+    for `--jobs 1` or a sweep of one configuration, else on Dask (`--scheduler`, or an
+    embedded `LocalCluster` of `--jobs` workers, one per CPU by default)."""
+
+    def __init__(self, args):
+        self.args = args
+        self.dask = None
+
+    def get(self, configurations: int):
+        from .executor import DaskExecutor, SerialExecutor
+
+        args = self.args
+        if args.scheduler is None and (args.jobs == 1 or configurations < 2):
+            return SerialExecutor()
+        if self.dask is None:
+            try:
+                self.dask = DaskExecutor(args.scheduler, workers=args.jobs)
+            except ImportError as e:
+                if args.scheduler is not None:
+                    raise SystemExit(str(e)) from None
+                print(f"{e}; running the cases in this process", file=sys.stderr)
+                return SerialExecutor()
+            except (ConnectionError, ValueError) as e:
+                raise SystemExit(str(e)) from None
+        return self.dask
+
+    def close(self):
+        if self.dask is not None:
+            self.dask.close()
+            self.dask = None
+
+
+def _sweep(args, study: str, sweep, cases: list, progress, columns=None) -> list:
+    """Run `cases` of `sweep` on the run's executor, logging each case to `<study>.jsonl`
+    and streaming its rows to the study's CSV; then rewrite the CSV in case order."""
+    from .executor import SweepIncomplete, run_sweep
+    from .harness import write_rows
+
+    csv_path = os.path.join(args.out, CSV[study])
+    log = os.path.splitext(csv_path)[0] + ".jsonl"
+    if not args.resume:
+        _fresh(csv_path)
+
+    def stream(case_id, rows):
+        if rows:
+            write_rows(rows, csv_path, append=True, columns=columns)
+
+    configurations = len({sweep.config_key(c) for c in cases})
+    try:
+        rows = run_sweep(sweep, cases, executor=args.executors.get(configurations), log=log,
+                         resume=args.resume, progress=progress, on_case=stream)
+    except SweepIncomplete as e:
+        raise SystemExit(f"{study}: {e}") from None
+    if rows:
+        write_rows(rows, csv_path, columns=columns)
+    return rows
 
 
 def _progress(total: int, desc: str, enabled: bool):
@@ -60,25 +127,15 @@ def _fresh(path: str) -> str:
 
 
 def run_work_precision(args) -> None:
-    from .harness import work_precision
-    from .suites import SETTINGS, networkvi_entries, peer_entries, sweeps
+    from .suites import SETTINGS
+    from .sweeps import WorkPrecisionSweep
 
     names = _problems(args, SETTINGS)
-    path = _fresh(os.path.join(args.out, CSV["work-precision"]))
-    plan = []
-    for name in names:
-        setting = SETTINGS[name]
-        entries = networkvi_entries(setting, args.full) + peer_entries(args.full)
-        if args.solvers:
-            entries = [e for e in entries if any(s in e.name for s in args.solvers)]
-        steps, rtols = sweeps(name, entries, args.full)
-        plan.append((name, setting, entries, steps, rtols))
-    total = sum(len(v) for *_, s, r in plan for v in (*s.values(), *r.values()))
-    bar = _progress(total, "work-precision", not args.no_progress)
-    rows: list = []
-    for _, setting, entries, steps, rtols in plan:
-        rows += work_precision(setting.make(), entries, steps=steps, rtols=rtols,
-                               repeats=args.repeats, csv_path=path, progress=bar)
+    sweep = WorkPrecisionSweep(full=args.full, repeats=args.repeats)
+    keep = (lambda n: any(s in n for s in args.solvers)) if args.solvers else (lambda n: True)
+    cases = sweep.cases(names, keep)
+    bar = _progress(len(cases), "work-precision", not args.no_progress)
+    rows = _sweep(args, "work-precision", sweep, cases, bar)
     if bar is not None:
         bar.close()
     from .report import ratio_markdown, ratio_table
@@ -106,30 +163,24 @@ def _our_energy_entries(setting, retry: bool) -> list:
 
 
 def run_energy(args) -> None:
-    from .harness import Adaptive, long_time_energy
-    from .suites import SETTINGS, peer_entries
+    from .suites import SETTINGS
+    from .sweeps import EnergySweep
 
     _problems(args, SETTINGS)  # refuses unknown names
     names = _energy_problems(args.problems, args.full, SETTINGS)
-    path = _fresh(os.path.join(args.out, CSV["energy"]))
     rtols = (1e-8, 1e-10, 1e-12) if args.quick else (1e-6, 1e-8, 1e-10, 1e-12, 1e-14)
-    peers = [e for e in peer_entries(False) if isinstance(e, Adaptive)
-             and e.name in ("Tsit5", "Dopri8")]
-    bar = _progress(len(names) * (2 + len(peers) * len(rtols)), "energy", not args.no_progress)
-    for name in names:
-        setting = SETTINGS[name]
-        n = args.long_steps.get(name, args.long_steps["default"])
-        problem = setting.make()
-        problem = problem.with_span(problem.t0 + n * setting.long_dt)
-        runs = [(e, n) for e in _our_energy_entries(setting, args.retry)]
-        runs += [(p, r) for p in peers for r in rtols]
-        long_time_energy(problem, runs, csv_path=path, progress=bar,
-                         adaptive_max_steps=args.adaptive_max_steps)
+    sweep = EnergySweep(retry=args.retry, adaptive_max_steps=args.adaptive_max_steps)
+    cases = [c for name in names
+             for c in sweep.cases(name, args.long_steps.get(name, args.long_steps["default"]),
+                                  rtols)]
+    bar = _progress(len(cases), "energy", not args.no_progress)
+    _sweep(args, "energy", sweep, cases, bar)
     if bar is not None:
         bar.close()
 
 
 def run_stability(args) -> None:
+    from .executor import SweepIncomplete
     from .stability import full_grid, quick_grid, select_solvers, stability_sweep
 
     try:
@@ -140,12 +191,39 @@ def run_stability(args) -> None:
     cases = grid(args.problems, solvers=solvers) if args.problems else grid(solvers=solvers)
     path = os.path.join(args.out, CSV["stability"])
     bar = _progress(len(cases), "stability", not args.no_progress)
-    rows = stability_sweep(cases, csv_path=path, progress=bar)
+    configurations = len({c.solver_key() for c in cases})
+    try:
+        rows = stability_sweep(cases, csv_path=path, progress=bar,
+                               executor=args.executors.get(configurations),
+                               log=os.path.splitext(path)[0] + ".jsonl", resume=args.resume)
+    except SweepIncomplete as e:
+        raise SystemExit(f"stability: {e}") from None
     if bar is not None:
         bar.close()
     from .report import stability_table
 
     print(stability_table(rows))
+
+
+def run_seed_quality(args) -> None:
+    """The OGA seed-quality study (`seed_quality`): the grid (`--quick`: the grid1d and
+    angular dictionaries) and the presets, in every precision; CSV and summary in `--out`."""
+    import dataclasses
+
+    from . import seed_quality as sq
+    from .sweeps import SeedQualitySweep
+
+    labels = [c[0] for c in sq.study_configs() if args.full or c[1] in ("grid1d", "angular")]
+    cases = SeedQualitySweep.cases(sq.PRECISIONS, labels)
+    bar = _progress(len(cases), "seed-quality", not args.no_progress)
+    columns = [f.name for f in dataclasses.fields(sq.SeedCase)]
+    rows = _sweep(args, "seed-quality", SeedQualitySweep(), cases, bar, columns=columns)
+    if bar is not None:
+        bar.close()
+    text = sq.summary_markdown([sq.SeedCase(**r) for r in rows])
+    with open(os.path.join(args.out, "seed_quality.md"), "w") as f:
+        f.write(text)
+    print(text)
 
 
 def run_long_run(args, argv=None) -> None:
@@ -254,18 +332,11 @@ def _worker_argv(argv: list[str]) -> list[str]:
 
 
 def _cpu_slots(jobs: int) -> list[set[int] | None]:
-    """One set of CPUs per worker slot, disjoint where the machine has enough of them.
+    """One set of CPUs per worker (`executor.cpu_slots`, which pins the embedded cluster's
+    workers)."""
+    from .executor import cpu_slots
 
-    Each XLA process sizes its thread pools to the CPUs it may run on, and its threads
-    spin while they wait: two unpinned processes on two cores slowed each other down by
-    more than 10x in our measurements, which corrupts the timings. `None` leaves a slot
-    unpinned (a platform without CPU affinity, or fewer CPUs than jobs)."""
-    if not hasattr(os, "sched_getaffinity"):
-        return [None] * jobs
-    cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) < jobs:
-        return [None] * jobs
-    return [set(cpus[k::jobs]) for k in range(jobs)]
+    return cpu_slots(jobs)
 
 
 def _spawn(cmd: list[str], cpus: set[int] | None, **kwargs):
@@ -281,63 +352,6 @@ def _spawn(cmd: list[str], cpus: set[int] | None, **kwargs):
         return subprocess.Popen(cmd, **kwargs)
     finally:
         os.sched_setaffinity(0, own)
-
-
-def run_parallel(args, todo: list[str], argv: list[str]) -> None:
-    """Run each (study, problem) as its own `python -m diffrax_vi.bench` process, `--jobs` at
-    a time (compilation is single-threaded, so this is what a multi-core machine buys), each
-    on its own share of the CPUs (`_cpu_slots`), then concatenate the parts into `--out`.
-    Each part keeps its CSV and log under `--out/parts/`; a failed part is reported and the
-    others still land."""
-    import subprocess
-
-    from .harness import read_rows, write_rows
-
-    tasks = [(study, name) for study in todo
-             for name in _problem_names(study, args.problems, args.full)]
-    # Long tasks first: the stability sweep and the energy runs outlast a work-precision sweep.
-    order = {"stability": 0, "energy": 1, "work-precision": 2}
-    tasks.sort(key=lambda t: order[t[0]])
-    common = _worker_argv(argv) + ["--no-progress"]
-    running: list = []
-    failed = []
-    parts_dir = os.path.join(args.out, "parts")
-    os.makedirs(parts_dir, exist_ok=True)
-    done = 0
-    free = _cpu_slots(args.jobs)
-    while tasks or running:
-        while tasks and len(running) < args.jobs:
-            study, name = tasks.pop(0)
-            cpus = free.pop(0)
-            part = os.path.join(parts_dir, f"{study}-{name}")
-            os.makedirs(part, exist_ok=True)
-            log = open(os.path.join(part, "log.txt"), "w")
-            cmd = [sys.executable, "-m", "diffrax_vi.bench", study, "--problems", name,
-                   "--out", part, *common]
-            proc = _spawn(cmd, cpus, stdout=log, stderr=subprocess.STDOUT)
-            running.append((study, name, part, log, proc, cpus))
-        time.sleep(0.5)
-        for item in list(running):
-            study, name, part, log, proc, cpus = item
-            if proc.poll() is None:
-                continue
-            running.remove(item)
-            free.append(cpus)
-            log.close()
-            done += 1
-            if proc.returncode != 0:
-                failed.append(f"{study} {name} (exit {proc.returncode}, see {part}/log.txt)")
-            print(f"[{done}] {study} {name}: exit {proc.returncode}", file=sys.stderr)
-    for study in todo:
-        path = _fresh(os.path.join(args.out, CSV[study]))
-        for name in _problem_names(study, args.problems, args.full):
-            part = os.path.join(parts_dir, f"{study}-{name}", CSV[study])
-            if os.path.exists(part):
-                rows = read_rows(part)
-                if rows:
-                    write_rows(rows, path, append=True, columns=list(rows[0]))
-    if failed:
-        print("failed parts: " + "; ".join(failed), file=sys.stderr)
 
 
 def _long_steps(text: str) -> dict[str, int]:
@@ -360,7 +374,7 @@ def main(argv=None) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("command", choices=["work-precision", "energy", "stability", "report",
-                                            "all", "long-run"])
+                                            "all", "long-run", "seed-quality"])
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true", help="the quick grids (default)")
     mode.add_argument("--full", action="store_true", help="the full grids (hours)")
@@ -385,9 +399,15 @@ def main(argv=None) -> None:
                         help="energy: NetworkVI steps with RetryFailedSteps (a failed step "
                              "is taken again in pieces instead of ending the run)")
     parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--jobs", type=int, default=1,
-                        help="run the studies as this many parallel processes, one per "
-                             "study and problem (default 1: in this process)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="workers of the embedded Dask cluster (default: one per CPU); "
+                             "1: run the cases in this process")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="send the cases to the Dask scheduler at ADDRESS "
+                             "(e.g. tcp://10.0.0.5:8786) instead of an embedded cluster")
+    parser.add_argument("--resume", action="store_true",
+                        help="keep the finished cases of <study>.jsonl in --out and run "
+                             "only the others")
     args = parser.parse_args(argv)
     args.quick = not args.full
     if args.command == "long-run":
@@ -404,20 +424,18 @@ def main(argv=None) -> None:
     start = time.perf_counter()
     todo = ["work-precision", "energy", "stability"] if args.command == "all" else [args.command]
     runners = {"work-precision": run_work_precision, "energy": run_energy,
-               "stability": run_stability}
-    if args.jobs < 1:
+               "stability": run_stability, "seed-quality": run_seed_quality}
+    if args.jobs is not None and args.jobs < 1:
         raise SystemExit(f"--jobs must be at least 1, got {args.jobs}")
-    if args.jobs > 1 and args.command != "report":
-        run_parallel(args, todo, list(sys.argv[1:] if argv is None else argv))
-        todo = []
-    for name in todo:
-        if name in runners:
-            t, cpu = time.perf_counter(), time.process_time()
-            runners[name](args)
-            # CPU time approximates the wall time on an unshared machine (compilation and
-            # these small solves are essentially single-threaded).
-            print(f"{name}: {time.perf_counter() - t:.0f} s wall, "
-                  f"{time.process_time() - cpu:.0f} s CPU", file=sys.stderr)
+    args.executors = _Executors(args)
+    try:
+        for name in todo:
+            if name in runners:
+                t = time.perf_counter()
+                runners[name](args)
+                print(f"{name}: {time.perf_counter() - t:.0f} s wall", file=sys.stderr)
+    finally:
+        args.executors.close()
     elapsed = None if args.command == "report" else time.perf_counter() - start
     write_report(args.out, command, elapsed)
     print(f"total {time.perf_counter() - start:.0f} s; report in {args.out}/report.md",

@@ -338,6 +338,7 @@ def work_precision(
     adaptive_max_steps: int = 100_000,
     csv_path: str | None = None,
     progress: Any = None,
+    on_rows: Callable[[list[dict[str, Any]]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Final error, energy error and cost of each solver over a sweep, on `problem`'s span.
 
@@ -361,6 +362,8 @@ def work_precision(
     - `adaptive_max_steps`: step budget of the adaptive runs.
     - `csv_path`: if given, rows are appended to this CSV as they are measured.
     - `progress`: a `tqdm`-like object with `update(n)` and `set_postfix_str(s)`, or `None`.
+    - `on_rows`: called with `[row]` as each row is measured (how the sweep executor streams
+      them), or `None`.
     """
     if repeats < 1:
         raise ValueError(f"repeats must be at least 1, got {repeats}")
@@ -416,6 +419,8 @@ def work_precision(
             rows.append(row)
             if csv_path is not None:
                 write_rows([row], csv_path, append=True)
+            if on_rows is not None:
+                on_rows([row])
             if progress is not None:
                 progress.update(1)
             if isinstance(row.get("status"), str) and row["status"].startswith("error:Not"):
@@ -432,6 +437,7 @@ def long_time_energy(
     adaptive_max_steps: int = 2**20,
     csv_path: str | None = None,
     progress: Any = None,
+    on_rows: Callable[[list[dict[str, Any]]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Energy error over the problem's (long) span, sampled on a logarithmic time grid.
 
@@ -439,7 +445,8 @@ def long_time_energy(
     scipy entry with its `rtol`. Every step end is kept; the row for sample time `t` holds
     `energy_error`, the largest `|H − H₀|/|H₀|` over the steps up to `t` (a bounded error
     levels off, a drift keeps growing), and each row repeats the run's `wall_s` (one run after a
-    compiling call on a short span), `steps` and `status`.
+    compiling call on a short span), `steps` and `status`. `on_rows`, if given, is called
+    with the rows of each run as it finishes.
     """
     if samples < 2:
         raise ValueError(f"samples must be at least 2, got {samples}")
@@ -497,6 +504,8 @@ def long_time_energy(
             rows.append(dict(base, status=classify(e), message=str(e).splitlines()[0][:200]))
         if csv_path is not None:
             write_rows(rows[start:], csv_path, append=True)
+        if on_rows is not None:
+            on_rows(rows[start:])
         if progress is not None:
             progress.update(1)
     return rows

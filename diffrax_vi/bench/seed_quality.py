@@ -73,6 +73,7 @@ __all__ = [
     "SeedCase",
     "study_configs",
     "run_study",
+    "run_case",
     "write_csv",
     "summary_markdown",
     "time_large_dictionary",
@@ -226,6 +227,25 @@ def _run_config(group, label, dname, sname, fname, config, precision) -> list[Se
             )  # fmt: skip
         )
     return cases
+
+
+def run_case(group: str, config: str, precision: str) -> list[SeedCase]:
+    """Fit and score one configuration in one precision (every activation and target): a
+    label of `study_configs()` when `group` is `"grid"`, a key of `PRESETS` when it is
+    `"preset"`. The unit of work of the study on a cluster (`sweeps.SeedQualitySweep`)."""
+    if group == "grid":
+        found = [c for c in study_configs() if c[0] == config]
+        if not found:
+            raise ValueError(f"no grid configuration {config!r}; see study_configs()")
+        label, dname, sname, fname, oga = found[0]
+    elif group == "preset":
+        if config not in PRESETS:
+            raise ValueError(f"no preset {config!r}; choose from {sorted(PRESETS)}")
+        oga = PRESETS[config]()
+        label, dname, sname, fname = config, "", "", oga.label
+    else:
+        raise ValueError(f"group must be 'grid' or 'preset', got {group!r}")
+    return _run_config(group, label, dname, sname, fname, oga, precision)
 
 
 def run_study(

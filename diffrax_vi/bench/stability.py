@@ -44,6 +44,7 @@ from ..quadrature import GaussLegendre
 from ..seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
 from ..solver import NetworkVI
 from .harness import relative_error, write_rows
+from .executor import run_sweep
 from .status import classify, converged
 
 __all__ = [
@@ -53,6 +54,7 @@ __all__ = [
     "run_case",
     "stability_sweep",
     "convergence_rates",
+    "StabilitySweep",
     "REFERENCE_RATES",
     "SOLVERS",
     "PROJECTED",
@@ -357,29 +359,55 @@ SWEEP_COLUMNS = (
 
 
 def stability_sweep(
+@dataclasses.dataclass(frozen=True)
+class StabilitySweep:
+    """The stability cases as a sweep of `diffrax_vi.bench.executor.run_sweep`: a case's id
+    names every field, and the cases of one `solver_key` share one compiled solve."""
+
+    name: str = "stability"
+
+    def case_id(self, case: StabilityCase) -> str:
+        return "|".join(f"{f.name}={getattr(case, f.name)!r}"
+                        for f in dataclasses.fields(case))
+
+    def config_key(self, case: StabilityCase) -> tuple:
+        return case.solver_key()
+
+    def run(self, cases: Sequence[StabilityCase], cache: dict, emit) -> None:
+        for case in cases:
+            emit(self.case_id(case), [run_case(case, cache)])
+
+
     cases: Iterable[StabilityCase],
     *,
     csv_path: str | None = None,
     progress: Any = None,
 ) -> list[dict[str, Any]]:
+    executor: Any = None,
+    log: str | None = None,
+    resume: bool = False,
+    batch_size: int | None = None,
     """Run every case (grouped so that cases sharing a compilation run together), appending
-    each row to `csv_path` as soon as it is measured. `progress` is a tqdm-like object."""
+    each row to `csv_path` as soon as it is measured; the CSV is rewritten in case order at
+    the end. `progress` is a tqdm-like object.
+
+    `executor` (a `SerialExecutor`, the default, or a `DaskExecutor`) runs the cases; `log`
+    is a result log (`executor.ResultLog`) that every finished case is appended to, and with
+    `resume` the cases already in it are not run again; `batch_size` caps the cases of one
+    configuration in one task (see `run_sweep`). The rows are the same whatever runs them
+    (`total_s` aside, a wall time)."""
     cases = sorted(cases, key=lambda c: (repr(c.solver_key()), c.acceptance, c.dt))
     if csv_path is not None:
         write_rows([], csv_path, columns=SWEEP_COLUMNS)
-    cache: dict = {}
-    rows = []
-    for case in cases:
-        if progress is not None:
-            progress.set_postfix_str(
-                f"{case.problem} {case.dtype} {case.activation} {case.solver} dt={case.dt:g}"
-            )
-        row = run_case(case, cache)
-        rows.append(row)
+
+    def stream(case_id, rows):
         if csv_path is not None:
-            write_rows([row], csv_path, append=True, columns=SWEEP_COLUMNS)
-        if progress is not None:
-            progress.update(1)
+            write_rows(rows, csv_path, append=True, columns=SWEEP_COLUMNS)
+
+    rows = run_sweep(StabilitySweep(), cases, executor=executor, log=log, resume=resume,
+                     progress=progress, on_case=stream, batch_size=batch_size)
+    if csv_path is not None:
+        write_rows(rows, csv_path, columns=SWEEP_COLUMNS)
     return rows
 
 
