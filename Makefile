@@ -46,7 +46,7 @@ docs: $(STAMP) /usr/bin/chromium
 	apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/step_cost.py
+	$(BIN)/python -m benchmarks.step_cost
 
 # Work-precision, long-time energy and stability sweep (docs/benchmarks.md); results and
 # figures go to benchmarks/results (quick) or benchmarks/results-full (full, hours).

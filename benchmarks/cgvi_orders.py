@@ -18,7 +18,7 @@ shows how far.
 A last table gives the exact-arithmetic order at small steps (ωh = 0.05 and 0.04, phase
 error per unit time): the asymptotic order.
 
-    taskset -c 0 env PYTHONPATH=. .venv/bin/python benchmarks/cgvi_orders.py \\
+    taskset -c 0 .venv/bin/python -m benchmarks.cgvi_orders \\
         > benchmarks/results/cgvi_orders.txt
 """
 
@@ -49,7 +49,7 @@ def exact_arithmetic_error(degree: int, x, steps: int):
     """Relative end-state error of `CGVI(degree)` after `steps` steps of `ωh = x`, in exact
     arithmetic (extended precision)."""
     with mpmath.workdps(60):
-        discrete, exact = spectral._oscillator_map(degree, x)
+        discrete, exact = spectral.oscillator_map(degree, x)
         y0 = mpmath.matrix([AMPLITUDE, 0])
         return mpmath.norm(discrete**steps * y0 - exact**steps * y0) / AMPLITUDE
 
@@ -78,7 +78,7 @@ def asymptotic_order(degree: int) -> float:
     0.04 (75 digits: the errors reach 1e-60)."""
     with mpmath.workdps(75):
         def phase_rate(x):
-            discrete, _ = spectral._oscillator_map(degree, x, digits=75)
+            discrete, _ = spectral.oscillator_map(degree, x, digits=75)
             return abs(mpmath.acos(discrete[0, 0]) - x) / x
 
         x1, x2 = mpmath.mpf("0.05"), mpmath.mpf("0.04")

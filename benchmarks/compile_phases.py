@@ -10,8 +10,8 @@ is the root finder's fallback either way).
 compiling and one run of the solve) in `--repeats` fresh Python processes sharing one new
 cache directory, so the first compiles and writes the cache and the others read it.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/compile_phases.py double_pendulum fast
-    PYTHONPATH=. .venv/bin/python benchmarks/compile_phases.py double_pendulum fast --cache
+    .venv/bin/python -m benchmarks.compile_phases double_pendulum fast
+    .venv/bin/python -m benchmarks.compile_phases double_pendulum fast --cache
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ import argparse
 import os
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 
@@ -32,10 +31,9 @@ import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
+from benchmarks.common import ROOT, module_command  # noqa: E402
+from benchmarks.speed import CONFIGS  # noqa: E402  (the configurations of benchmarks.speed)
 from diffrax_vi import problems  # noqa: E402
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from speed import CONFIGS  # noqa: E402  (the configurations of benchmarks/speed.py)
 
 NODES = {"harmonic_oscillator": 8, "double_pendulum": 16}
 
@@ -85,9 +83,9 @@ def cached_first_calls(problem_name: str, config: str, processes: int = 3, steps
     with tempfile.TemporaryDirectory() as cache:
         for _ in range(processes):
             line = subprocess.run(
-                [sys.executable, os.path.abspath(__file__), problem_name, config,
-                 "--child-cache", cache, "--steps", str(steps)],
-                check=True, capture_output=True, text=True,
+                module_command("benchmarks.compile_phases", problem_name, config,
+                               "--child-cache", cache, "--steps", str(steps)),
+                check=True, capture_output=True, text=True, cwd=ROOT,
                 env=dict(os.environ, EQX_ON_ERROR="nan"),  # no host callback in the program
             ).stdout.strip().splitlines()[-1]
             out.append(float(line))

@@ -5,7 +5,7 @@ tanh width 10, Gauss–Legendre 8, 10 steps of 0.1, float64, for free and interp
 endpoints. `sol.evaluate` and `sol.derivative` are compared with the exact solution at the
 points of a grid of 1001 times that are not step ends.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/dense_accuracy.py
+    .venv/bin/python -m benchmarks.dense_accuracy
 """
 
 from __future__ import annotations

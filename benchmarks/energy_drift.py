@@ -27,17 +27,14 @@ on `--nodes` Gauss–Legendre nodes (default 8), float64. `--peers tsit5:1e-10 d
 adds adaptive diffrax runs over the same span (PID controller, atol = rtol/100), their energy
 sampled at 1000 evenly spaced times.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/energy_drift.py harmonic_oscillator 0.25 4000
-    PYTHONPATH=. .venv/bin/python benchmarks/energy_drift.py henon_heiles 0.1 4000 \
+    .venv/bin/python -m benchmarks.energy_drift harmonic_oscillator 0.25 4000
+    .venv/bin/python -m benchmarks.energy_drift henon_heiles 0.1 4000 \
         --configs default oga2d
 """
 
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
-import sys
 import time
 
 import jax
@@ -50,12 +47,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
+from benchmarks.common import parse_peer, report_peers, span_parser  # noqa: E402
+from benchmarks.speed import CONFIGS as SPEED_CONFIGS  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.bench import timed  # noqa: E402
 
 EPS = float(jnp.finfo(jnp.float64).eps)
-sys.path.insert(0, os.path.dirname(__file__))
-from speed import CONFIGS as SPEED_CONFIGS  # noqa: E402
 
 
 def solver_for(config: str, width: int = 10, nodes: int = 8):
@@ -120,34 +117,6 @@ def run_steps(solver, problem, h: float, steps: int, repeats: int = 0):
             steady, median_iterations)
 
 
-PEERS = {"tsit5": diffrax.Tsit5, "dopri8": diffrax.Dopri8}
-
-
-def peer_run(name: str, rtol: float, problem, h: float, steps: int, samples: int = 1000):
-    """An adaptive diffrax peer over the same span (`steps·h`), its energy sampled at
-    `samples` evenly spaced times. Returns (largest relative energy error, accepted steps,
-    wall seconds of the run after its compiling call, whether it reached the end)."""
-    t1 = problem.t0 + steps * h
-    ts = jnp.linspace(problem.t0, t1, samples + 1)[1:]
-    term = problem.term.to_ode()
-
-    @jax.jit
-    def solve(y0):
-        return diffrax.diffeqsolve(
-            term, PEERS[name](), problem.t0, t1, h, y0, args=problem.args,
-            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol * 1e-2),
-            saveat=diffrax.SaveAt(ts=ts), max_steps=2**24, throw=False)
-
-    sol = solve(problem.y0)
-    jax.block_until_ready(sol.ys)
-    sol, seconds = timed(solve, problem.y0)
-    e0 = float(problem.energy(problem.t0, *problem.y0))
-    energy = jax.vmap(lambda a, b: problem.energy(problem.t0, a, b))(*sol.ys)
-    ok = bool(sol.result == diffrax.RESULTS.successful)
-    largest = float(jnp.max(jnp.abs(energy - e0))) / abs(e0) if ok else float("inf")
-    return largest, int(sol.stats["num_accepted_steps"]), seconds, ok
-
-
 def drift_summary(problem, q, p, residual) -> dict:
     """Energy drift and accepted-residual statistics of one run (see the module docstring)."""
     e0 = float(problem.energy(problem.t0, *problem.y0))
@@ -170,56 +139,6 @@ def drift_summary(problem, q, p, residual) -> dict:
     )
 
 
-def _parse_peer(parser, text: str) -> tuple[str, float]:
-    """`NAME:RTOL` of `--peers`, checked before anything runs."""
-    name, _, rtol = text.partition(":")
-    if name not in PEERS:
-        parser.error(f"--peers: unknown peer {name!r} in {text!r}; known: {', '.join(PEERS)}")
-    try:
-        value = float(rtol)
-    except ValueError:
-        value = -1.0
-    if not value > 0:
-        parser.error(f"--peers: {text!r} needs a positive RTOL after the colon, e.g. {name}:1e-10")
-    return name, value
-
-
-PROBLEM_NAMES = sorted(n for n in problems.__all__ if n[0].islower())
-
-
-def _positive(kind):
-    def convert(text):
-        value = kind(text)
-        if not value > 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-        return value
-
-    return convert
-
-
-def span_parser(doc: str) -> argparse.ArgumentParser:
-    """The arguments this script shares with `long_runs.py`: the problem, the step, the
-    number of steps (checked), and `--peers`."""
-    parser = argparse.ArgumentParser(description=doc,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("problem", choices=PROBLEM_NAMES)
-    parser.add_argument("h", type=_positive(float))
-    parser.add_argument("steps", type=_positive(int))
-    parser.add_argument("--peers", nargs="*", default=[],
-                        help="adaptive diffrax peers over the same span, as NAME:RTOL "
-                             "(NAME in tsit5, dopri8), e.g. dopri8:1e-12")
-    return parser
-
-
-def report_peers(peers, problem, h: float, steps: int, prefix: str = "\n") -> None:
-    """Run and print each `--peers` entry over the span of `steps` steps of `h`."""
-    for name, rtol in peers:
-        largest, accepted, seconds, ok = peer_run(name, rtol, problem, h, steps)
-        status = "reached the end" if ok else "did not reach the end"
-        print(f"{prefix}{name} rtol {rtol}: {status}, {accepted} steps in {seconds:.2f} s "
-              f"(after compiling); largest energy error at 1000 sampled times {largest:.1e}")
-
-
 def main(argv=None):
     parser = span_parser(__doc__)
     parser.add_argument("--configs", nargs="+", default=["default", "oga2d", "fast", "cgvi"])
@@ -229,7 +148,7 @@ def main(argv=None):
     parser.add_argument("--nodes", type=int, default=8,
                         help="Gauss-Legendre nodes (default 8)")
     ns = parser.parse_args(argv)
-    peers = [_parse_peer(parser, text) for text in ns.peers]
+    peers = [parse_peer(parser, text) for text in ns.peers]
     problem = getattr(problems, ns.problem)(dtype=jnp.float64)
     print(f"{ns.problem}, {ns.steps} steps of h = {ns.h}, float64, tanh width {ns.width}, "
           f"Gauss-Legendre {ns.nodes}; relative energy error")

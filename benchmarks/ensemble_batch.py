@@ -5,8 +5,8 @@ Members: 10 steps of h = 0.1 of the harmonic oscillator from random amplitudes (
 with `--all-parameter` the `FreeEndpoints()` step, or with `--cgvi 7` the polynomial `CGVI(7)`.
 Median of `--repeats` runs after compiling.
 
-    taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/ensemble_batch.py --members 512
-    taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/ensemble_batch.py \\
+    taskset -c 1 .venv/bin/python -m benchmarks.ensemble_batch --members 512
+    taskset -c 1 .venv/bin/python -m benchmarks.ensemble_batch \\
         --all-parameter --members 64 --repeats 3
 """
 

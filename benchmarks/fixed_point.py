@@ -17,7 +17,7 @@
 5. The kinetic matrix (`matrix="kinetic"`) against the Jacobian, on the three problems and the
    outer solar system (18 coordinates).
 
-    taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/fixed_point.py \\
+    taskset -c 1 .venv/bin/python -m benchmarks.fixed_point \\
         [--only cost|profile|hard|reuse|kinetic] [--repeats 5] > benchmarks/results/fixed_point.txt
 """
 
@@ -39,7 +39,7 @@ import optimistix as optx  # noqa: E402
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.fixed_point import FixedPointIteration  # noqa: E402
-from diffrax_vi.seeding.policy import residual_scale as _residual_scale  # noqa: E402
+from diffrax_vi.seeding.policy import residual_scale  # noqa: E402
 
 CASES = {
     "oscillator (h = 0.5)": (problems.harmonic_oscillator, {}, 0.5, 4000),
@@ -139,7 +139,7 @@ def _warm_step(problem, h):
     dim, dtype = q.shape[0], q.dtype
 
     def root(ctx, span, z0):
-        options = dict(scale=_residual_scale(ctx), jacobian=form.reduced_jacobian)
+        options = dict(scale=residual_scale(ctx), jacobian=form.reduced_jacobian)
         return optx.root_find(form.reduced_residual, dvi.RoundoffNewton(ftol=0.0), z0,
                               (ctx, span), options=options, max_steps=50).value
 
@@ -188,7 +188,7 @@ def profile(repeats: int) -> None:
 
     def solve_with(rf):
         def body(v):
-            options = dict(scale=_residual_scale(ctx), jacobian=form.reduced_jacobian)
+            options = dict(scale=residual_scale(ctx), jacobian=form.reduced_jacobian)
             sol = optx.root_find(form.reduced_residual, rf, unravel(v), args, options=options,
                                  max_steps=50, throw=False)
             return nudge(v, jax.flatten_util.ravel_pytree(sol.value)[0])
@@ -230,7 +230,7 @@ def profile(repeats: int) -> None:
           "us per diffrax step | rest of the step | step / Dopri8 step |")
     print("|---|---|---|---|---|---|")
     for name, rf in solves.items():
-        options = dict(scale=_residual_scale(ctx), jacobian=form.reduced_jacobian)
+        options = dict(scale=residual_scale(ctx), jacobian=form.reduced_jacobian)
         its = int(optx.root_find(form.reduced_residual, rf, z0, args, options=options,
                                  max_steps=50).stats["num_steps"])
         us = _loop_us(solve_with(rf), flat0, reps=500, repeats=repeats)
@@ -305,7 +305,7 @@ def _stepper(problem, h, n, root_finder, carry_jacobian):
         return ctx, form.span(basis.zeros(dim, dtype), ctx)
 
     def solve(ctx, span, z0, rf, jacobian=form.reduced_jacobian):
-        options = dict(scale=_residual_scale(ctx), jacobian=jacobian)
+        options = dict(scale=residual_scale(ctx), jacobian=jacobian)
         return optx.root_find(form.reduced_residual, rf, z0, (ctx, span), options=options,
                               max_steps=50, throw=False)
 

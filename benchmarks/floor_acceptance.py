@@ -16,18 +16,16 @@ per fixture, success, the largest relative error of q over the step ends and the
   residual `max|F|`, output change, iterations without the residual halving, failed line
   searches; the step boundary shows as an output change near 1e-7.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/floor_acceptance.py
-    PYTHONPATH=. .venv/bin/python benchmarks/floor_acceptance.py --root-finder "jacobian='auto'"
-    PYTHONPATH=. .venv/bin/python benchmarks/floor_acceptance.py --tolerance floor_moving=0.75
-    PYTHONPATH=. .venv/bin/python benchmarks/floor_acceptance.py --trace --only 0
+    .venv/bin/python -m benchmarks.floor_acceptance
+    .venv/bin/python -m benchmarks.floor_acceptance --root-finder "jacobian='auto'"
+    .venv/bin/python -m benchmarks.floor_acceptance --tolerance floor_moving=0.75
+    .venv/bin/python -m benchmarks.floor_acceptance --trace --only 0
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
-import shlex
-import sys
 
 import jax
 
@@ -40,6 +38,7 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 import diffrax_vi.nonlinear as nonlinear  # noqa: E402
+from benchmarks.common import command_line  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 
 # (problem factory, its keyword arguments, activation, width, Gauss–Legendre nodes)
@@ -136,7 +135,7 @@ def main(argv=None) -> None:
         raise SystemExit(f"--root-finder: {err}") from None
     if exponents:
         patch_tolerances(exponents)
-    print(f"command: python {shlex.join(sys.argv)}")
+    print(f"command: {command_line('benchmarks.floor_acceptance', argv)}")
     print("| fixture (10 steps, h = 0.1) | ok | max rel. error of q | iterations | max per step |")
     print("|---|---|---|---|---|")
     for index in range(len(FIXTURES)) if args.only is None else args.only:

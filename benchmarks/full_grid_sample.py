@@ -8,7 +8,7 @@ estimated per problem and solver as (number of groups) × (mean time of a sample
 a bootstrap 90 % interval over the sampled groups. Each group's time is its wall time from the first
 compilation to its last case, as `stability_sweep` measures it (`total_s` per case).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/full_grid_sample.py [--groups 2]
+    .venv/bin/python -m benchmarks.full_grid_sample [--groups 2]
         [--problems harmonic_oscillator pendulum double_pendulum] [--seed 0] [--out DIR]
 
 The Toda lattice is left out by default: one of its iterations costs about 0.3 s, so a group
@@ -21,7 +21,6 @@ import argparse
 import os
 import random
 import statistics
-import sys
 import time
 
 import jax
@@ -30,6 +29,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from benchmarks.common import command_line  # noqa: E402
 from diffrax_vi.bench.stability import full_grid, stability_sweep  # noqa: E402
 
 
@@ -71,7 +71,7 @@ def main():
     args = parser.parse_args()
     if args.groups < 1:
         parser.error("--groups must be at least 1")
-    print(f"command: python {' '.join(sys.argv)}")
+    print(f"command: {command_line('benchmarks.full_grid_sample')}")
     print(f"load average at start: {os.getloadavg()[0]:.1f}")
     grand = np.zeros(2000)
     for problem in args.problems:

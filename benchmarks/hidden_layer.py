@@ -28,7 +28,7 @@ scaled by `1 + 1e-15` and the layer recomputed by its rule (a continuous step ma
 ~1e-16; a refitted OGA layer jumps, and the step with it by the span's error); the vmap row
 solves four oscillators batched and one by one.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/hidden_layer.py [--quick]
+    .venv/bin/python -m benchmarks.hidden_layer [--quick]
 
 About 100 s on one core of the 2-core CPU (`--quick`: small grids, 3 steps, ~70 s).
 """

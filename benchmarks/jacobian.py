@@ -5,7 +5,7 @@ residual (`jax.jacfwd`, the default) against the block assembly of `FreeEndpoint
 Each is timed as 100 evaluations inside one compiled `lax.scan` (median of `--repeats` runs),
 at random parameters of a ShallowNet tanh network, float64.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/jacobian.py [--repeats 5] [--problems ...]
+    .venv/bin/python -m benchmarks.jacobian [--repeats 5] [--problems ...]
 """
 
 from __future__ import annotations

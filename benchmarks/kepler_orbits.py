@@ -5,7 +5,7 @@ The issue asks that the best variational configuration reach `Dopri8`'s error at
 than half of `Dopri8`'s wall time over 100 orbits, and the same over 1000 orbits with a
 position error of at most 1e-9. Report and figures go to `--out`.
 
-    taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/kepler_orbits.py \\
+    taskset -c 1 .venv/bin/python -m benchmarks.kepler_orbits \\
         [--out benchmarks/results/kepler_orbits] [--spans 100 1000]
 """
 
@@ -36,7 +36,7 @@ def main(argv=None) -> None:
         args.out, problems={name: long_run.PROBLEMS[name]}, spans={name: tuple(args.spans)},
         solvers=solvers, peers=peers, rtols=long_run.FULL_RTOLS, repeats=3, budget_s=5.0,
         max_run_s=300.0, reference_budget_s=600.0,
-        command="python benchmarks/kepler_orbits.py " + " ".join(sys.argv[1:] if argv is None
+        command="python -m benchmarks.kepler_orbits " + " ".join(sys.argv[1:] if argv is None
                                                                 else argv),
     )
     print(open(f"{args.out}/report.md").read())

@@ -14,10 +14,10 @@ study's long-run settings). `--retry` steps with `diffrax_vi.RetryFailedSteps()`
 `energy_drift.py`). `MAXIT=200` in the environment raises `root_find_max_steps`;
 `--no-restart` sets `restart_failed=False`.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py double_pendulum 0.05 20000 10 16 fast
-    PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py double_pendulum 0.05 100000 10 8 \
+    .venv/bin/python -m benchmarks.long_runs double_pendulum 0.05 20000 10 16 fast
+    .venv/bin/python -m benchmarks.long_runs double_pendulum 0.05 100000 10 8 \
         default --retry --peers tsit5:1e-10 dopri8:1e-12
-    PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py toda_lattice 0.1 20 8 16 fast --again
+    .venv/bin/python -m benchmarks.long_runs toda_lattice 0.1 20 8 16 fast --again
 
 `--chunks K` runs the span as K consecutive solves, each starting from the previous one's
 state and solver state (`diffeqsolve(..., solver_state=...)`), so the run is the same
@@ -26,7 +26,7 @@ FILE` the state after every chunk is written to FILE (`.npz`) and a later call w
 arguments carries on from there: a run of hours survives an interruption. `--chunks-now M`
 runs at most M chunks in this call (0: only report what the checkpoint holds).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/long_runs.py toda_lattice 0.1 100000 8 16 guarded \
+    .venv/bin/python -m benchmarks.long_runs toda_lattice 0.1 100000 8 16 guarded \
         --chunks 50 --checkpoint benchmarks/results/long_runs/toda1e5_guarded.npz \
         --peers tsit5:1e-10 dopri8:1e-10 dopri8:1e-12
 """
@@ -34,7 +34,6 @@ runs at most M chunks in this call (0: only report what the checkpoint holds).
 from __future__ import annotations
 
 import os
-import sys
 import time
 
 import jax
@@ -47,11 +46,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
+from benchmarks.common import parse_peer, report_peers, span_parser  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.bench.harness import retry_step_budget  # noqa: E402
-
-sys.path.insert(0, os.path.dirname(__file__))
-from energy_drift import _parse_peer, report_peers, span_parser  # noqa: E402
 
 EPS = float(jnp.finfo(jnp.float64).eps)
 FAST = dict(reuse_neurons=True,
@@ -194,7 +191,7 @@ def main(argv=None):
     parser.add_argument("--retry", action="store_true",
                         help="step with RetryFailedSteps() instead of ConstantStepSize()")
     ns = parser.parse_args(argv)
-    peers = [_parse_peer(parser, text) for text in ns.peers]
+    peers = [parse_peer(parser, text) for text in ns.peers]
     if ns.chunks is not None and (ns.chunks < 1 or ns.steps % ns.chunks or 1000 % ns.chunks):
         parser.error(f"--chunks {ns.chunks} must divide both the number of steps "
                      f"({ns.steps}) and the 1000 saved intervals")

@@ -5,7 +5,7 @@ target on the 33-point Simpson grid, float64. Prints the first call (trace + com
 and the median of `--repeats` runs after it, per D. The first D's loop call also builds
 the dictionary, which is cached for every call after it.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/oga_coordinates.py [--dims 1 2 4 8 16]
+    .venv/bin/python -m benchmarks.oga_coordinates [--dims 1 2 4 8 16]
 """
 
 from __future__ import annotations

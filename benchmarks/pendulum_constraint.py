@@ -15,7 +15,7 @@ This script measures that, one compiled `lax.scan` of `NetworkVI.step` per run:
    onto the constraint; not part of the variational map, and not offered by the solver):
    steps done and largest relative energy error.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/pendulum_constraint.py [--steps 2000] [--h 0.1]
+    .venv/bin/python -m benchmarks.pendulum_constraint [--steps 2000] [--h 0.1]
 """
 
 from __future__ import annotations

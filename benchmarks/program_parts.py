@@ -8,7 +8,7 @@ included, and attributes each to the innermost `diffrax_vi` function on its trac
 instead, a view from the top. Sub-programs called more than once are counted once per call site,
 like the lowered program does. It prints the largest parts first.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/program_parts.py double_pendulum fast
+    .venv/bin/python -m benchmarks.program_parts double_pendulum fast
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import collections
 import os
-import sys
 
 import jax
 
@@ -25,10 +24,8 @@ jax.config.update("jax_enable_x64", True)
 from jax.extend import core as jex_core  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from compile_phases import NODES, fixture_solve  # noqa: E402
-from speed import CONFIGS  # noqa: E402
+from benchmarks.compile_phases import NODES, fixture_solve  # noqa: E402
+from benchmarks.speed import CONFIGS  # noqa: E402
 
 PACKAGE = os.path.dirname(os.path.abspath(dvi.__file__))
 

@@ -6,7 +6,7 @@ residual, and (for the timed fixture) milliseconds per run and per step after co
 (median of `--repeats`). The vmap row solves four oscillators (amplitudes 0.3, 0.5, 0.7, 0.9)
 under `jax.vmap` and as a loop of single solves and prints their largest difference.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/projection.py [--repeats 3] [--quick]
+    .venv/bin/python -m benchmarks.projection [--repeats 3] [--quick]
         [--sections fixtures vmap timing energy] [--energy-steps 2000 100000]
 
 The energy section runs the oscillator at h = 0.5 and prints the largest relative energy

@@ -1,9 +1,9 @@
 """Produce the published benchmark results: run the studies of `diffrax_vi.bench` and copy the
 figures to `docs/assets/benchmarks/` for `docs/benchmarks.md`.
 
-    .venv/bin/python benchmarks/publish.py --quick          # = make bench-quick, then copy
-    .venv/bin/python benchmarks/publish.py --full           # hours
-    .venv/bin/python benchmarks/publish.py --copy-only      # only copy existing figures
+    .venv/bin/python -m benchmarks.publish --quick          # = make bench-quick, then copy
+    .venv/bin/python -m benchmarks.publish --full           # hours
+    .venv/bin/python -m benchmarks.publish --copy-only      # only copy existing figures
 
 Any other option is passed to `python -m diffrax_vi.bench` (e.g. `--problems kepler`).
 """

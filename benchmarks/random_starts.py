@@ -6,7 +6,7 @@
 as `(start, steps completed, residual where the solve stopped)` and the median largest error
 of q relative to the amplitude over the successful starts.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/random_starts.py 8 10 12 [--preset OGA1dStable]
+    .venv/bin/python -m benchmarks.random_starts 8 10 12 [--preset OGA1dStable]
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ stalled iterates say what the reference's accounting would count as converged th
 list proves that no root exists: the roots of a rank-deficient network step form manifolds,
 and which one a solve reaches depends on its seed.)
 
-    PYTHONPATH=. .venv/bin/python benchmarks/root_existence.py harmonic_oscillator tanh 10 8 \
+    .venv/bin/python -m benchmarks.root_existence harmonic_oscillator tanh 10 8 \
         --dts 0.1 1 2 4 10
 """
 
@@ -64,7 +64,7 @@ def main(argv=None) -> None:
     if not all(dt > 0 for dt in args.dts):
         parser.error(f"step lengths must be positive, got {args.dts}")
     shown = sys.argv[1:] if argv is None else argv
-    print("command: python benchmarks/root_existence.py " + shlex.join(shown))
+    print("command: python -m benchmarks.root_existence " + shlex.join(shown))
 
     problem = PROBLEMS[args.problem](dtype=np.float64)
     term, params, y0, t0 = problem.term, problem.args, problem.y0, problem.t0

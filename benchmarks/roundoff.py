@@ -21,7 +21,7 @@
    of the same discrete Lagrangian from its start, along oscillator trajectories; the mean
    energy change rounding adds per step, per root finder.
 
-    taskset -c 1 env PYTHONPATH=. .venv/bin/python benchmarks/roundoff.py \\
+    taskset -c 1 .venv/bin/python -m benchmarks.roundoff \\
         [--steps N] [--only energy|growth|compensation|cost|bias] [--members M]
         [--solver NAME]
 """

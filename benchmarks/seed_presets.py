@@ -4,7 +4,7 @@ For every OGA preset as `initial_guess`, with GELU and tanh networks of width 10
 network of width 4 (Gauss–Legendre 8, float64), prints the solve's result, the max relative
 error of q at the step ends against the exact solution, and the total nonlinear iterations.
 
-    python benchmarks/seed_presets.py [PRESET ...]     # default: all presets
+    python -m benchmarks.seed_presets [PRESET ...]     # default: all presets
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """Seed quality of every OGA configuration, without an integrator (see
 `diffrax_vi.bench.seed_quality` for the cases and the scores).
 
-    python benchmarks/seed_quality.py                 # whole grid: 6048 cases + presets
-    python benchmarks/seed_quality.py --quick         # grid1d and angular dictionaries only
-    python benchmarks/seed_quality.py --out results/seed_quality
+    python -m benchmarks.seed_quality                 # whole grid: 6048 cases + presets
+    python -m benchmarks.seed_quality --quick         # grid1d and angular dictionaries only
+    python -m benchmarks.seed_quality --out /tmp/sq   # default: benchmarks/results/seed_quality
 
 Writes `<out>.csv` (one row per case) and `<out>.md` (summary tables, and the time of one
 jitted fit with a 50000-interval dictionary), and prints the markdown.
@@ -20,12 +20,13 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from benchmarks.common import RESULTS  # noqa: E402
 from diffrax_vi.bench import seed_quality as sq  # noqa: E402
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="results/seed_quality")
+    parser.add_argument("--out", default=str(RESULTS / "seed_quality"))
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--precisions", default=",".join(sq.PRECISIONS))
     args = parser.parse_args()

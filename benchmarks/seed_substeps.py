@@ -13,7 +13,7 @@ Per row: success, median and mean iterations per step, error of q at the end rel
 amplitude, and ms per step (median of `--repeats` runs after compiling; the configurations'
 runs are interleaved, so a load on the machine falls on all of them alike).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/seed_substeps.py [--substeps 10 20 40 100]
+    .venv/bin/python -m benchmarks.seed_substeps [--substeps 10 20 40 100]
         [--problems double_pendulum] [--rules "early stop"] [--steps N] [--repeats R]
         [--activation gelu]
 """

@@ -5,7 +5,7 @@ For each foundation fixture (10 steps of h = 0.1, float64) and each candidate ro
 problem's reference, the nonlinear iterations (total, median and max per step) and the run
 time after compilation.
 
-    python benchmarks/solver_choice.py          # all fixtures and root finders
+    python -m benchmarks.solver_choice          # all fixtures and root finders
 """
 
 from __future__ import annotations

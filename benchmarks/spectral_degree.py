@@ -16,7 +16,7 @@ next to the two error models of `diffrax_vi.spectral`, and the degrees they choo
    amplitude 1.98 rad about the stable point: the error falls about half as fast in the
    degree for the degenerate form.
 
-    taskset -c 0 env PYTHONPATH=. .venv/bin/python benchmarks/spectral_degree.py \\
+    taskset -c 0 .venv/bin/python -m benchmarks.spectral_degree \\
         > benchmarks/results/spectral_degree.txt
 """
 

@@ -33,7 +33,7 @@
    subprocess (`XLA_FLAGS=--xla_force_host_platform_device_count=8`), its time and the
    largest difference from the unsharded result.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/speed.py [--quick] [--only fixtures|ensembles]
+    .venv/bin/python -m benchmarks.speed [--quick] [--only fixtures|ensembles]
 
 `--only fixtures` runs sections 1-3, `--only ensembles` sections 4-6.
 """
@@ -44,7 +44,6 @@ import argparse
 import functools
 import os
 import platform
-import shlex
 import statistics
 import subprocess
 import sys
@@ -65,8 +64,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
+from benchmarks.common import ROOT, command_line, module_command  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.bench import iteration_summary, timed  # noqa: E402
+from diffrax_vi.ensemble import cpu_compiler_options  # noqa: E402
 
 H = 0.1
 # The double pendulum's comparison of all configurations: at h = 0.1 the all-parameter
@@ -227,9 +228,7 @@ def linear_solve_floor(members, repeats):
     rng = np.random.default_rng(1)
     jac = jnp.asarray(rng.standard_normal((members, n, n)))
     rhs = jnp.asarray(rng.standard_normal((members, n)))
-    from diffrax_vi.ensemble import _cpu_compiler_options
-
-    options = dict(_cpu_compiler_options()) if jax.default_backend() == "cpu" else {}
+    options = dict(cpu_compiler_options()) if jax.default_backend() == "cpu" else {}
     solve = jax.jit(jax.vmap(jnp.linalg.solve), compiler_options=options)
     jax.block_until_ready(solve(jac, rhs))
     per_member = statistics.median(timed(solve, jac, rhs)[1] for _ in range(5 * repeats)) / members
@@ -288,7 +287,7 @@ def main():
         sharded_child(args.members, args.repeats)
         return
 
-    print(f"command: python {shlex.join(sys.argv)}")
+    print(f"command: {command_line('benchmarks.speed')}")
     print(
         f"machine: {platform.platform()}, python {platform.python_version()}, jax "
         f"{jax.__version__} ({jax.default_backend()}), os.cpu_count() = {os.cpu_count()} "
@@ -416,16 +415,9 @@ def ensemble_section(args):
         "CPU, throughput >= 80 % of the floor's bound"
     )
     if args.devices:
-        cmd = [
-            sys.executable,
-            os.path.abspath(__file__),
-            "--sharded-child",
-            "--members",
-            str(args.members),
-            "--repeats",
-            str(args.repeats),
-        ]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+        cmd = module_command("benchmarks.speed", "--sharded-child", "--members",
+                             str(args.members), "--repeats", str(args.repeats))
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
         line = [s for s in proc.stdout.splitlines() if s.startswith("SHARDED")]
         if proc.returncode or not line:
             print(f"sharded run failed:\n{proc.stdout}\n{proc.stderr[-2000:]}")

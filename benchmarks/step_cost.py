@@ -18,8 +18,8 @@ Each solver runs inside one `eqx.filter_jit`-ed `diffeqsolve(..., throw=False)` 
 
 A solver that fails still gets its row. Run it with
 
-    .venv/bin/python benchmarks/step_cost.py [--steps 1000] [--repeats 5] [--dict-amount K]
-    .venv/bin/python benchmarks/step_cost.py --quick      # 100 steps, 3 repeats
+    .venv/bin/python -m benchmarks.step_cost [--steps 1000] [--repeats 5] [--dict-amount K]
+    .venv/bin/python -m benchmarks.step_cost --quick      # 100 steps, 3 repeats
 """
 
 from __future__ import annotations
@@ -27,9 +27,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import shlex
 import statistics
-import sys
 
 import jax
 
@@ -41,6 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
+from benchmarks.common import command_line  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.bench import iteration_summary, timed  # noqa: E402
 
@@ -136,7 +135,7 @@ def main():
         )
     )
 
-    print(f"command: python {shlex.join(sys.argv)}")
+    print(f"command: {command_line('benchmarks.step_cost')}")
     print(
         f"machine: {platform.platform()}, {platform.machine()}, python {platform.python_version()}"
         f", jax {jax.__version__} ({jax.default_backend()}: {jax.devices()[0].device_kind})"

@@ -24,9 +24,9 @@ several coordinates (double pendulum) the per-coordinate ranks are joined by `/`
 The HO step sizes share one compilation per (activation, width, nodes): `t1` and `dt0` are
 traced.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/step_structure.py            # full grid
-    PYTHONPATH=. .venv/bin/python benchmarks/step_structure.py --quick    # tanh, S 6/10, R 8/16
-    PYTHONPATH=. .venv/bin/python benchmarks/step_structure.py --tiny --out -   # smoke test
+    .venv/bin/python -m benchmarks.step_structure            # full grid
+    .venv/bin/python -m benchmarks.step_structure --quick    # tanh, S 6/10, R 8/16
+    .venv/bin/python -m benchmarks.step_structure --tiny --out -   # smoke test
 
 Writes the table to `--out` (default `benchmarks/results/step_structure.txt`, or
 `step_structure_quick.txt` with `--quick`; `-` prints only; `--append` adds to it) and prints
@@ -34,8 +34,8 @@ it as it goes. `--problems`, `--activations`, `--widths`, `--nodes` replace a pa
 The committed table was cut down to fit a 2-core machine (about 10 s per compiled
 combination): the oscillator on the whole grid, the double pendulum with tanh and GELU only:
 
-    PYTHONPATH=. .venv/bin/python benchmarks/step_structure.py --problems ho0.1 ho0.5
-    PYTHONPATH=. .venv/bin/python benchmarks/step_structure.py --problems dp0.1 \\
+    .venv/bin/python -m benchmarks.step_structure --problems ho0.1 ho0.5
+    .venv/bin/python -m benchmarks.step_structure --problems dp0.1 \\
         --activations tanh gelu --append
 """
 
@@ -43,8 +43,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shlex
-import sys
 import time
 
 import jax
@@ -58,6 +56,7 @@ import numpy as np  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
+from benchmarks.common import command_line  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
@@ -228,8 +227,7 @@ def main(argv=None) -> None:
         if args.tiny:
             out = "-"
 
-    command = sys.argv if argv is None else ["benchmarks/step_structure.py", *argv]
-    lines = [f"command: python {shlex.join(command)}",
+    lines = [f"command: {command_line('benchmarks.step_structure', argv)}",
              f"float64; spectra at the converged parameters of step {args.steps} "
              f"(sol.solver_state.theta)", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|"]
     print("\n".join(lines), flush=True)

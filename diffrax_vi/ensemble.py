@@ -92,8 +92,9 @@ def _all_cpu(mesh: Mesh | None) -> bool:
 
 
 @functools.cache
-def _cpu_compiler_options() -> tuple[tuple[str, str], ...]:
-    """`_CPU_OPTIONS` where this jaxlib knows them, else none."""
+def cpu_compiler_options() -> tuple[tuple[str, str], ...]:
+    """The XLA options `ensemble` compiles with on CPUs (`_CPU_OPTIONS`) where this jaxlib
+    knows them, else none; public so that a measurement can compile alongside it alike."""
     try:
         jax.jit(lambda x: x + 1, compiler_options=_CPU_OPTIONS).lower(1.0).compile()
     except Exception:  # an older or newer XLA without the option
@@ -126,7 +127,7 @@ def _compiled(
 ) -> Callable:
     """The jitted batched function; cached so that repeated calls do not retrace."""
     batched = _chunked(fn, in_axes, batch_size)
-    options = dict(_cpu_compiler_options()) if _all_cpu(mesh) else {}
+    options = dict(cpu_compiler_options()) if _all_cpu(mesh) else {}
     if mesh is None:
         return jax.jit(batched, compiler_options=options)
     specs = tuple(PartitionSpec(axis_name) if a == 0 else PartitionSpec() for a in in_axes)

@@ -112,7 +112,7 @@ def _galerkin_matrices(degree: int, digits: int = _DIGITS):
         return k_ends, m_ends, m_cross, k_bubbles, m_bubbles
 
 
-def _oscillator_map(degree: int, x, digits: int = _DIGITS):
+def oscillator_map(degree: int, x, digits: int = _DIGITS):
     """The one-step map of `CGVI(degree)` (any quadrature exact for polynomials of degree
     `2·degree`) on the oscillator at `x = ω h`, in the coordinates `(q, p/ω)`, and the exact
     rotation, as mpmath 2×2 matrices.
@@ -148,7 +148,7 @@ def _step_error(degree: int, x: float) -> float:
     import mpmath
 
     try:
-        discrete, exact = _oscillator_map(degree, x)
+        discrete, exact = oscillator_map(degree, x)
     except ZeroDivisionError:  # exactly at a resonance of the bubbles
         return math.inf
     with mpmath.workdps(_DIGITS):

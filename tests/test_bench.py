@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import sys
 
 import diffrax
@@ -399,18 +400,56 @@ def test_stability_sweep_runs_the_projected_step_on_request(tmp_path):
 
 
 def benchmark_script(name: str):
-    """Import `benchmarks/<name>.py` (not a package) as a module."""
-    import importlib.util
+    """The benchmark script `benchmarks.<name>` (run as `python -m benchmarks.<name>`)."""
+    import importlib
 
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", f"{name}.py")
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module(f"benchmarks.{name}")
+
+
+BENCHMARKS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks")
+QUOTED_MODULE = re.compile(r"-m\s+benchmarks\.(\w+)")
+QUOTED_PATH = re.compile(r"(?<![:\w])benchmarks/(\w+)\.py\b")  # not `git show REV:benchmarks/...`
+
+
+def quoting_files() -> list[str]:
+    """The pages, the Makefile, the tests and the scripts themselves: every place that quotes
+    a benchmark command (the changelog and the result files are records, left out)."""
+    root = os.path.dirname(BENCHMARKS)
+    docs = [os.path.join(d, f) for d, _, fs in os.walk(os.path.join(root, "docs"))
+            for f in fs if f.endswith(".md") and f != "changelog.md"]
+    scripts = [os.path.join(BENCHMARKS, f) for f in os.listdir(BENCHMARKS) if f.endswith(".py")]
+    tests = [os.path.join(root, "tests", f) for f in os.listdir(os.path.join(root, "tests"))
+             if f.endswith(".py")]
+    return sorted(docs + scripts + tests + [os.path.join(root, name) for name in
+                                            ("README.md", "Makefile", "benchmarks/README.md")])
+
+
+def test_quoted_benchmark_commands_name_existing_scripts():
+    """Every `python -m benchmarks.<name>` and every `benchmarks/<name>.py` quoted in the
+    docs, the README files, the Makefile, the tests and the scripts names a script that is
+    there, no command still runs a script by its path, and the index
+    (`benchmarks/README.md`) lists every script."""
+    scripts = {f[:-3] for f in os.listdir(BENCHMARKS) if f.endswith(".py")} - {"__init__"}
+    missing, by_path = [], []
+    for path in quoting_files():
+        with open(path, encoding="utf-8") as file:
+            text = file.read()
+        for name in QUOTED_MODULE.findall(text) + QUOTED_PATH.findall(text):
+            if name not in scripts:
+                missing.append(f"{os.path.relpath(path, BENCHMARKS)}: {name}")
+        by_path += [f"{os.path.relpath(path, BENCHMARKS)}: {m.group(0)}" for m in
+                    re.finditer(r"python\S*\s+(?:-u\s+)?benchmarks/\w+\.py", text)]
+    assert not missing, f"quoted benchmark scripts that do not exist: {missing}"
+    assert not by_path, f"commands that run a benchmark by its path: {by_path}"
+    with open(os.path.join(BENCHMARKS, "README.md"), encoding="utf-8") as file:
+        index = file.read()
+    unlisted = [n for n in sorted(scripts - {"common"}) if f"benchmarks.{n} " not in index
+                and f"benchmarks.{n}`" not in index]
+    assert not unlisted, f"scripts missing from benchmarks/README.md: {unlisted}"
 
 
 def test_full_grid_sample_draws_whole_compilation_groups():
-    """benchmarks/full_grid_sample.py: per solver, seeded random groups of cases that share a
+    """benchmarks.full_grid_sample: per solver, seeded random groups of cases that share a
     compilation (LevenbergMarquardt: 4 dt; RegularisedNewton: 4 dt x 5 λ)."""
     module = benchmark_script("full_grid_sample")
     strata = module.sample_groups("pendulum", 3, seed=1)
@@ -425,7 +464,7 @@ def test_full_grid_sample_draws_whole_compilation_groups():
 
 
 def test_speed_script_measures_the_ensemble_floor():
-    """benchmarks/speed.py's floor of an ensemble member: the vmapped LU solve of one Newton
+    """benchmarks.speed's floor of an ensemble member: the vmapped LU solve of one Newton
     iteration of the projected step at the fixture's size (10 unknowns: 9 span coefficients
     and p_{n+1}), and the iterations of one member's solve."""
     module = benchmark_script("speed")
@@ -440,7 +479,7 @@ def test_speed_script_measures_the_ensemble_floor():
                        ("ensembles", ["ensembles"])],
 )
 def test_speed_script_runs_the_sections_asked_for(monkeypatch, capsys, only, expected):
-    """benchmarks/speed.py --only: half of the script (the GPU run used `--only ensembles`)."""
+    """benchmarks.speed --only: half of the script (the GPU run used `--only ensembles`)."""
     module = benchmark_script("speed")
     ran = []
     monkeypatch.setattr(module, "fixture_figures", lambda args: ran.append("fixtures"))
@@ -456,7 +495,7 @@ def test_speed_script_runs_the_sections_asked_for(monkeypatch, capsys, only, exp
 
 
 def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, monkeypatch):
-    """benchmarks/long_runs.py: a tiny oscillator run, with and without the restart switch,
+    """benchmarks.long_runs: a tiny oscillator run, with and without the restart switch,
     in one solve and in chunks resumed from a checkpoint."""
     module = benchmark_script("long_runs")
     run = ["harmonic_oscillator", "0.1", "5", "6", "6", "fast", "--no-restart"]
@@ -511,7 +550,7 @@ def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, mo
 
 
 def test_seed_substeps_script_prints_a_row_per_rule_and_substep_count(capsys):
-    """benchmarks/seed_substeps.py: a tiny oscillator run converges and reports iterations."""
+    """benchmarks.seed_substeps: a tiny oscillator run converges and reports iterations."""
     module = benchmark_script("seed_substeps")
     module.main(["--problems", "harmonic_oscillator", "--rules", "early stop", "--substeps",
                  "10", "--steps", "3", "--repeats", "1"])
@@ -523,7 +562,7 @@ def test_seed_substeps_script_prints_a_row_per_rule_and_substep_count(capsys):
 
 
 def test_root_existence_script_reports_each_seed(capsys):
-    """benchmarks/root_existence.py: one row per seed and step length; a short oscillator
+    """benchmarks.root_existence: one row per seed and step length; a short oscillator
     step converges and is accurate, a failed one reports the stalled iterate's error."""
     module = benchmark_script("root_existence")
     module.main(["harmonic_oscillator", "tanh", "10", "8", "--dts", "0.1", "10",
@@ -540,7 +579,7 @@ def test_root_existence_script_reports_each_seed(capsys):
 
 
 def test_pendulum_constraint_script_measures_p2_and_projects_it():
-    """benchmarks/pendulum_constraint.py: its compiled step loop carries p₂ (nonzero after a
+    """benchmarks.pendulum_constraint: its compiled step loop carries p₂ (nonzero after a
     network step), and the projection sets it to zero after every step."""
     import jax.numpy as jnp
 
@@ -577,7 +616,7 @@ def test_iteration_summary_reads_the_solver_counters():
 
 @pytest.mark.long  # 40 s of compiling; a benchmark script, kept out of CI's time budget
 def test_compile_phases_script_splits_the_first_call():
-    """benchmarks/compile_phases.py on the smallest fixture: both phases timed, the program
+    """benchmarks.compile_phases on the smallest fixture: both phases timed, the program
     sized."""
     module = benchmark_script("compile_phases")
     trace, compile_s, size = module.phases("harmonic_oscillator", "fast", steps=2)
@@ -588,7 +627,7 @@ def test_compile_phases_script_splits_the_first_call():
 
 
 def test_program_parts_script_attributes_operations_to_package_functions():
-    """benchmarks/program_parts.py: every primitive of a traced solve is counted once, the
+    """benchmarks.program_parts: every primitive of a traced solve is counted once, the
     root finder and the residual are among the owners, and the top-level view sums the same."""
     module = benchmark_script("program_parts")
     inner = module.program_parts("harmonic_oscillator", "fast", steps=2)
@@ -599,10 +638,12 @@ def test_program_parts_script_attributes_operations_to_package_functions():
 
 
 def test_energy_drift_script_reports_slope_and_accepted_residuals(capsys):
-    """benchmarks/energy_drift.py: the compiled step loop returns states and accepted
-    residuals, and the summary recovers a known linear drift."""
+    """benchmarks.energy_drift: the compiled step loop returns states and accepted
+    residuals, and the summary recovers a known linear drift; the adaptive peer run that it
+    shares with `benchmarks.long_runs` (`benchmarks.common`)."""
     import jax.numpy as jnp
 
+    from benchmarks.common import peer_run
     from diffrax_vi import problems
 
     module = benchmark_script("energy_drift")
@@ -616,7 +657,7 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals(capsys):
     assert summary["residual"][2] == residual.max() and len(summary["windows"]) == 5
     assert summary["windows"][-1] < 1e-8
     # an adaptive peer over the same span, energy sampled along it
-    largest, accepted, seconds, ok = module.peer_run("dopri8", 1e-8, problem, 0.25, 5, 4)
+    largest, accepted, seconds, ok = peer_run("dopri8", 1e-8, problem, 0.25, 5, 4)
     assert ok and 0 < largest < 1e-6 and accepted > 0 and seconds > 0
 
     class Drifting:  # energy rises by 1e-9 of E₀ per step
@@ -639,7 +680,7 @@ def test_energy_drift_script_reports_slope_and_accepted_residuals(capsys):
 
 
 def test_oga_coordinates_script_compares_loop_and_vmap():
-    """benchmarks/oga_coordinates.py: both layouts of the per-coordinate OGA seed give the
+    """benchmarks.oga_coordinates: both layouts of the per-coordinate OGA seed give the
     same parameters, and both are timed."""
     module = benchmark_script("oga_coordinates")
     r = module.compare(2, repeats=1, dict_amount=200)
@@ -648,7 +689,7 @@ def test_oga_coordinates_script_compares_loop_and_vmap():
 
 
 def test_floor_acceptance_script_solves_a_fixture_and_refuses_bad_settings(capsys):
-    """benchmarks/floor_acceptance.py: a fixture row under a root-finder setting and a patched
+    """benchmarks.floor_acceptance: a fixture row under a root-finder setting and a patched
     tolerance; malformed settings are refused by name."""
     import diffrax_vi.nonlinear as nonlinear
 
@@ -676,7 +717,7 @@ def test_floor_acceptance_script_solves_a_fixture_and_refuses_bad_settings(capsy
 
 
 def test_step_structure_script_reports_the_three_spectra(tmp_path, capsys):
-    """benchmarks/step_structure.py --tiny: one converged oscillator step (tanh 6, GL8) with the
+    """benchmarks.step_structure --tiny: one converged oscillator step (tanh 6, GL8) with the
     ranks of the tangent data (18 x 18), the step Jacobian (19 x 19) and the hidden features
     (18 x 6) written to --out; a refused combination gets its row without a solve."""
     module = benchmark_script("step_structure")
@@ -699,7 +740,7 @@ def test_step_structure_script_reports_the_three_spectra(tmp_path, capsys):
 
 
 def test_projection_script_energy_section(capsys):
-    """benchmarks/projection.py --sections energy: a 20-step oscillator run per solver, with
+    """benchmarks.projection --sections energy: a 20-step oscillator run per solver, with
     every solver's row successful and an energy error at the level of a converged step."""
     module = benchmark_script("projection")
     module.main(["--sections", "energy", "--energy-steps", "20"])

@@ -38,7 +38,7 @@ ASYMPTOTIC = range(1, 10)  # degrees whose design steps are in the asymptotic re
 
 def exact_arithmetic_error(degree, x, steps):
     with mpmath.workdps(60):
-        discrete, exact = spectral._oscillator_map(degree, x)
+        discrete, exact = spectral.oscillator_map(degree, x)
         y0 = mpmath.matrix([AMPLITUDE, 0])
         return mpmath.norm(discrete**steps * y0 - exact**steps * y0) / AMPLITUDE
 
@@ -101,7 +101,7 @@ def test_cgvi_exact_arithmetic_order_is_two_s(degree):
     # The phase error per unit time of the method in exact arithmetic at small steps.
     with mpmath.workdps(75):
         def rate(x):
-            discrete, _ = spectral._oscillator_map(degree, x, digits=75)
+            discrete, _ = spectral.oscillator_map(degree, x, digits=75)
             return abs(mpmath.acos(discrete[0, 0]) - x) / x
 
         x1, x2 = mpmath.mpf("0.05"), mpmath.mpf("0.04")

@@ -77,17 +77,17 @@ def test_cpu_compiler_options_fall_back_where_xla_lacks_them(monkeypatch):
 
     # this jaxlib knows the option, so CPU ensembles compile with it
     if jax.default_backend() == "cpu":
-        assert dict(module._cpu_compiler_options()) == module._CPU_OPTIONS
+        assert dict(module.cpu_compiler_options()) == module._CPU_OPTIONS
     # an XLA without it: no options, and the ensemble still runs
     monkeypatch.setattr(module, "_CPU_OPTIONS", {"xla_cpu_no_such_option": "1"})
-    module._cpu_compiler_options.cache_clear()
+    module.cpu_compiler_options.cache_clear()
     module._compiled.cache_clear()
     try:
-        assert module._cpu_compiler_options() == ()
+        assert module.cpu_compiler_options() == ()
         (q, _), result = dvi.ensemble(solve_one, initial_conditions(2), jnp.ones(2))
         assert np.all(np.asarray(result)) and np.all(np.isfinite(np.asarray(q)))
     finally:
-        module._cpu_compiler_options.cache_clear()
+        module.cpu_compiler_options.cache_clear()
         module._compiled.cache_clear()
 
 
