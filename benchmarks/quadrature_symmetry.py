@@ -221,7 +221,7 @@ def energy_growth(steps: int, batch: int, degree: int = 7) -> None:
         at1, slope1 = growth(ts, e1, steps, h)
         row = [label, ok, at1, slope1, float(one.ys[0][-1, 0])]
         if many is not None:
-            ok = ok and bool(np.all(np.asarray(many.result._value) == 0))
+            ok = ok and bool(np.all(np.asarray(many.result == diffrax.RESULTS.successful)))
             e = np.asarray(energy(many.ys[0], many.ys[1]))
             at, slope = growth(ts, np.concatenate([e1[None], e]), steps, h)
             row += [np.median(at, axis=0), np.max(at, axis=0), np.median(slope)]

@@ -448,6 +448,43 @@ def test_quoted_benchmark_commands_name_existing_scripts():
     assert not unlisted, f"scripts missing from benchmarks/README.md: {unlisted}"
 
 
+def test_benchmark_scripts_use_no_private_names_of_the_package_or_each_other():
+    """No script imports a private (underscore) name of `diffrax_vi` or of another script,
+    or reads one as an attribute of such a module (`quadrature._split`); no script edits
+    `sys.path`. Shared helpers are public names of `benchmarks.common`."""
+    import ast
+
+    ours = ("diffrax_vi", "benchmarks")
+    found = []
+    for file in sorted(f for f in os.listdir(BENCHMARKS) if f.endswith(".py")):
+        with open(os.path.join(BENCHMARKS, file), encoding="utf-8") as handle:
+            source = handle.read()
+        if "sys.path" in source:
+            found.append(f"{file}: edits sys.path")
+        tree = ast.parse(source)
+        modules = set()  # local names bound to modules of ours
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.split(".")[0] in ours:
+                        modules.add(alias.asname or alias.name.split(".")[0])
+                        if any(part.startswith("_") for part in alias.name.split(".")):
+                            found.append(f"{file}: import {alias.name}")
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in ours:
+                for alias in node.names:
+                    modules.add(alias.asname or alias.name)  # a submodule or a public name
+                    if alias.name.startswith("_") or any(
+                            part.startswith("_") and part != "__main__"
+                            for part in node.module.split(".")):
+                        found.append(f"{file}: from {node.module} import {alias.name}")
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                    and not node.attr.startswith("__") and isinstance(node.value, ast.Name)
+                    and node.value.id in modules):
+                found.append(f"{file}: {node.value.id}.{node.attr}")
+    assert not found, f"private names used by benchmark scripts: {found}"
+
+
 def test_full_grid_sample_draws_whole_compilation_groups():
     """benchmarks.full_grid_sample: per solver, seeded random groups of cases that share a
     compilation (LevenbergMarquardt: 4 dt; RegularisedNewton: 4 dt x 5 λ)."""
