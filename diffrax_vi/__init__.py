@@ -6,7 +6,7 @@ float64 needs `jax.config.update("jax_enable_x64", True)`; the library never fli
 from . import oga, problems
 from .activations import elu, gelu, relu_k, sigmoid, sin, tanh
 from .ansatz import AbstractBasis, DenseNetBasis, LagrangeBasis, ShallowNetBasis
-from .ensemble import ensemble, ensemble_mesh
+from .ensemble import ensemble, ensemble_gather, ensemble_mesh
 from .fixed_point import FixedPointIteration
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .interpolation import NetworkInterpolation
@@ -77,6 +77,7 @@ __version__ = "0.1.0.dev0"
 
 __all__ = [
     "ensemble",
+    "ensemble_gather",
     "ensemble_mesh",
     "DenseNet",
     "DenseNetBasis",

@@ -12,7 +12,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import PyTree
 
-__all__ = ["ensemble", "ensemble_mesh"]
+__all__ = ["ensemble", "ensemble_mesh", "ensemble_gather"]
 
 _AXIS = "ensemble"
 
@@ -166,11 +166,12 @@ def ensemble(
     rounding in the last bit). If `B` is not a multiple of the number of devices, the ensemble
     is padded with copies of its last member, which are dropped from the result.
 
-    Several hosts: call `jax.distributed.initialize()` on every process first, build the mesh
-    from `jax.devices()` (all devices of all processes) and call `ensemble` with the same
-    global inputs on every process. The result is then a global `jax.Array`; each process
-    reads the members on its own devices from `result.addressable_shards` (or all of them with
-    `jax.experimental.multihost_utils.process_allgather`).
+    Several processes (hosts, or one process per GPU): call `jax.distributed.initialize()` on
+    every process first, build the mesh from `jax.devices()` (all devices of all processes)
+    and call `ensemble` with the same global inputs on every process. The result is then a
+    global `jax.Array`; each process reads the members on its own devices from
+    `result.addressable_shards`, or all of them with `ensemble_gather`. The members are those
+    of one process with as many devices.
 
     The compiled program is cached per `(fn, in_axes, mesh, batch_size)`: pass the same
     function object to reuse it (a new `lambda` on every call compiles again).
@@ -223,3 +224,26 @@ def ensemble(
     if padded == size:
         return out
     return jax.tree_util.tree_map(lambda x: x[:size], out)
+
+
+def ensemble_gather(result: PyTree) -> PyTree:
+    """Every member of an ensemble's result as NumPy arrays, on every process.
+
+    In one process this is `np.asarray` of each leaf. After `jax.distributed.initialize()` the
+    result of a sharded `ensemble` spans the devices of all processes, and a process can read
+    only its own shards; here the processes exchange them
+    (`jax.experimental.multihost_utils.process_allgather`), so every process must call it.
+
+    **Arguments:**
+
+    - `result`: the output of `ensemble` (a pytree of arrays).
+    """
+
+    def gather(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            from jax.experimental import multihost_utils
+
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(x)
+
+    return jax.tree_util.tree_map(gather, result)
