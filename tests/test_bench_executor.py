@@ -201,3 +201,42 @@ def test_whole_quick_stability_sweep_on_two_workers_matches_serial(tmp_path):
         rows = stability_sweep(cases, executor=executor, log=str(tmp_path / "s.jsonl"))
     assert len(rows) == len(cases)
     assert _table(rows) == _table(serial)
+
+
+def test_cli_resume_runs_only_the_missing_cases(tmp_path):
+    """`--resume` keeps the logged cases (their measured wall times come back unchanged) and
+    runs the others; the CSV is the whole table in case order."""
+    from diffrax_vi.bench.__main__ import main as cli_main
+    from diffrax_vi.bench.harness import read_rows
+
+    out = str(tmp_path / "out")
+    argv = ["work-precision", "--problems", "harmonic_oscillator", "pendulum", "--solvers",
+            "scipy", "--repeats", "1", "--jobs", "1", "--no-progress", "--out", out]
+    cli_main(argv)
+    first = read_rows(os.path.join(out, "work_precision.csv"))
+    log = tmp_path / "out" / "work_precision.jsonl"
+    lines = log.read_text().splitlines()
+    assert len(first) == len(lines) == 10
+    log.write_text("\n".join(lines[:6]) + "\n")  # as if stopped after six cases
+    cli_main(argv + ["--resume"])
+    second = read_rows(os.path.join(out, "work_precision.csv"))
+    key = [(r["problem"], r["value"]) for r in first]
+    assert [(r["problem"], r["value"]) for r in second] == key
+    assert [r["wall_s"] for r in second[:6]] == [r["wall_s"] for r in first[:6]]
+    assert len(log.read_text().splitlines()) == 10
+
+
+def test_cli_names_an_unreachable_scheduler(tmp_path, monkeypatch):
+    from diffrax_vi.bench import executor
+    from diffrax_vi.bench.__main__ import main as cli_main
+
+    real = executor.DaskExecutor
+    monkeypatch.setattr(executor, "DaskExecutor",
+                        lambda address, workers=None: real(address, workers=workers, timeout=1))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(SystemExit, match=f"no Dask scheduler answered at 'tcp://127.0.0.1:{port}'"):
+        cli_main(["work-precision", "--problems", "harmonic_oscillator", "--solvers", "scipy",
+                  "--scheduler", f"tcp://127.0.0.1:{port}", "--no-progress",
+                  "--out", str(tmp_path)])

@@ -46,20 +46,27 @@ CSV = {
 
 
 class _Executors:
-    """The executor of this run, made on first need and closed at the end: in this process
-    for `--jobs 1` or a sweep of one configuration, else on Dask (`--scheduler`, or an
-    embedded `LocalCluster` of `--jobs` workers, one per CPU by default)."""
+    """The executor of this run: the cases of a sweep run in this process for `--jobs 1` or
+    when only one configuration is left to run, else on Dask (`--scheduler`, or an embedded
+    `LocalCluster` of `--jobs` workers, one per CPU by default), started on first need and
+    closed at the end."""
 
     def __init__(self, args):
         self.args = args
         self.dask = None
 
-    def get(self, configurations: int):
+    def run(self, sweep, batches, emit) -> list[str]:
+        from .executor import SerialExecutor
+
+        args = self.args
+        if args.scheduler is None and (args.jobs == 1 or len(batches) < 2):
+            return SerialExecutor().run(sweep, batches, emit)
+        return self._dask().run(sweep, batches, emit)
+
+    def _dask(self):
         from .executor import DaskExecutor, SerialExecutor
 
         args = self.args
-        if args.scheduler is None and (args.jobs == 1 or configurations < 2):
-            return SerialExecutor()
         if self.dask is None:
             try:
                 self.dask = DaskExecutor(args.scheduler, workers=args.jobs)
@@ -67,7 +74,7 @@ class _Executors:
                 if args.scheduler is not None:
                     raise SystemExit(str(e)) from None
                 print(f"{e}; running the cases in this process", file=sys.stderr)
-                return SerialExecutor()
+                self.dask = SerialExecutor()
             except (ConnectionError, ValueError) as e:
                 raise SystemExit(str(e)) from None
         return self.dask
@@ -93,9 +100,8 @@ def _sweep(args, study: str, sweep, cases: list, progress, columns=None) -> list
         if rows:
             write_rows(rows, csv_path, append=True, columns=columns)
 
-    configurations = len({sweep.config_key(c) for c in cases})
     try:
-        rows = run_sweep(sweep, cases, executor=args.executors.get(configurations), log=log,
+        rows = run_sweep(sweep, cases, executor=args.executors, log=log,
                          resume=args.resume, progress=progress, on_case=stream)
     except SweepIncomplete as e:
         raise SystemExit(f"{study}: {e}") from None
@@ -191,10 +197,8 @@ def run_stability(args) -> None:
     cases = grid(args.problems, solvers=solvers) if args.problems else grid(solvers=solvers)
     path = os.path.join(args.out, CSV["stability"])
     bar = _progress(len(cases), "stability", not args.no_progress)
-    configurations = len({c.solver_key() for c in cases})
     try:
-        rows = stability_sweep(cases, csv_path=path, progress=bar,
-                               executor=args.executors.get(configurations),
+        rows = stability_sweep(cases, csv_path=path, progress=bar, executor=args.executors,
                                log=os.path.splitext(path)[0] + ".jsonl", resume=args.resume)
     except SweepIncomplete as e:
         raise SystemExit(f"stability: {e}") from None

@@ -330,16 +330,18 @@ class DaskExecutor:
                 drain()
                 for future in [f for f in pending if f.done()]:
                     pending.discard(future)
-                    if future.status == "finished":
-                        for case_id, rows in future.result():
-                            emit(case_id, rows)
-                    else:
-                        errors.append(f"{type(future.exception()).__name__}: "
-                                      f"{future.exception()}")
+                    try:
+                        results = future.result()
+                    except Exception as e:  # e.g. KilledWorker, after Dask's retries
+                        errors.append(f"{type(e).__name__}: {e}")
+                        continue
+                    for case_id, rows in results:
+                        emit(case_id, rows)
             drain()
         finally:
             for future in pending:
                 future.cancel()
+            arrivals.close()
         return errors
 
     def close(self) -> None:
@@ -374,7 +376,7 @@ def run_sweep(
     sweep: Sweep,
     cases: Iterable[Any],
     *,
-    executor: SerialExecutor | DaskExecutor | None = None,
+    executor: Any = None,
     log: str | os.PathLike | ResultLog | None = None,
     resume: bool = False,
     progress: Any = None,
@@ -385,9 +387,13 @@ def run_sweep(
 
     **Arguments:**
 
-    - `sweep`: the kind of case (a `Sweep`).
+    - `sweep`: the kind of case, an object with `name`, `case_id(case)` (a stable string),
+      `config_key(case)` (equal keys share one compiled program) and `run(cases, cache,
+      emit)` (see `Sweep`); it must pickle, to travel to the workers.
     - `cases`: the cases; their ids must be distinct.
-    - `executor`: a `SerialExecutor` (default) or a `DaskExecutor`.
+    - `executor`: a `SerialExecutor` (default), a `DaskExecutor`, or any object whose
+      `run(sweep, batches, emit)` runs lists of cases and returns the errors of those that
+      failed.
     - `log`: a path (or `ResultLog`) that every finished case is appended to as it arrives.
     - `resume`: keep the cases already in `log` and run only the others; otherwise the log is
       started afresh.
