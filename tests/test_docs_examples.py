@@ -38,6 +38,9 @@ NOT_RUN_MARK = re.compile(r"^<!-- not run: (\S[^\n]*?) -->[ \t]*$")
 NOT_RUN = {
     ("how-to/choosing.md", 7),  # sets JAX's persistent cache directory for the whole process
     ("how-to/ensembles.md", 4),  # jax.distributed.initialize needs a cluster's coordinator
+    ("how-to/scaling-out.md", 2),  # starts a Dask cluster (tests/test_bench_executor.py does)
+    ("how-to/scaling-out.md", 3),  # needs a Slurm cluster
+    ("how-to/scaling-out.md", 4),  # needs the other processes of a jax.distributed run
 }
 
 
