@@ -291,10 +291,15 @@ class DaskExecutor:
             if workers is None:
                 workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
                     else (os.cpu_count() or 1)
-            self._cluster = distributed.LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True,
-                dashboard_address=None, silence_logs=40, timeout=timeout,
-            )
+            import dask
+
+            # The workers' statistical profiler samples the busy thread's deep JAX stacks,
+            # which costs CPU on every compilation, for a dashboard this cluster does not have.
+            with dask.config.set({"distributed.worker.profile.enabled": False}):
+                self._cluster = distributed.LocalCluster(
+                    n_workers=workers, threads_per_worker=1, processes=True,
+                    dashboard_address=None, silence_logs=40, timeout=timeout,
+                )
             self.client = distributed.Client(self._cluster, timeout=timeout)
             self.client.register_plugin(_pin_plugin(cpu_slots(workers)))
 
