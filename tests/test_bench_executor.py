@@ -240,3 +240,23 @@ def test_cli_names_an_unreachable_scheduler(tmp_path, monkeypatch):
         cli_main(["work-precision", "--problems", "harmonic_oscillator", "--solvers", "scipy",
                   "--scheduler", f"tcp://127.0.0.1:{port}", "--no-progress",
                   "--out", str(tmp_path)])
+
+
+@pytest.mark.long
+def test_seed_and_energy_sweeps_give_the_studies_rows():
+    """The seed-quality sweep's rows are `run_study`'s cases; the energy sweep has one
+    case per run, each with its samples."""
+    from diffrax_vi.bench import seed_quality as sq
+    from diffrax_vi.bench.sweeps import EnergySweep, SeedQualitySweep
+
+    configs = sq.study_configs()[:2]
+    expected = sq.run_study(["float64"], configs, presets=False)
+    cases = SeedQualitySweep.cases(["float64"], [c[0] for c in configs], presets=False)
+    rows = run_sweep(SeedQualitySweep(), cases)
+    assert [sq.SeedCase(**r) for r in rows] == expected
+    sweep = EnergySweep()
+    cases = sweep.cases("harmonic_oscillator", 40, [1e-8])
+    assert [c.entry for c in cases][-2:] == ["Tsit5", "Dopri8"]
+    seen = []
+    rows = run_sweep(sweep, cases, on_case=lambda case_id, rs: seen.append(len(rs)))
+    assert seen == [40] * len(cases) and all(r["status"] == "ok" for r in rows)
