@@ -44,7 +44,7 @@ def fixture_solve(problem_name: str, config: str, restart: bool = True, steps: i
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(dvi.tanh, 10),
         dvi.GaussLegendre(NODES.get(problem_name, 8)),
-        restart_failed=restart,
+        seed=dvi.SeedPolicy(restart_failed=restart),
         **CONFIGS[config],
     )
 

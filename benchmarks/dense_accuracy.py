@@ -35,7 +35,7 @@ def main() -> None:
             basis,
             dvi.GaussLegendre(8),
             formulation=dvi.InterpolatingEndpoints(),
-            initial_guess=dvi.OGA1dNormalized(),
+            seed=dvi.SeedPolicy(initial_guess=dvi.OGA1dNormalized()),
         ),
     }
     ts = np.linspace(0.0, 1.0, 1001)

@@ -61,17 +61,18 @@ def solver_for(config: str, width: int = 10, nodes: int = 8):
         return dvi.CGVI(7, dvi.GaussLegendre(8))
     early_stop = dvi.LevenbergMarquardt(jacobian="auto", settle=0, otol=2.0**-39)
     options = {"default": {}, "all": dict(formulation=dvi.FreeEndpoints()),
-               "oga2d": dict(initial_guess=dvi.OGA2d()),
+               "oga2d": dict(seed=dvi.SeedPolicy(initial_guess=dvi.OGA2d())),
                "fast": SPEED_CONFIGS["fast"],
                "settle0": dict(root_finder=early_stop),
                # the default seed and output tolerance, fewer iterations at the floor
                "settle0_otol": dict(root_finder=dvi.LevenbergMarquardt(settle=0)),
                "settle1": dict(root_finder=dvi.LevenbergMarquardt(settle=1)),
                "settle2": dict(root_finder=dvi.LevenbergMarquardt(settle=2)),
-               "refit": dict(reuse_neurons=True,
+               "refit": dict(seed=dvi.SeedPolicy(reuse_neurons=True),
                              root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
-               "refit_limited": dict(reuse_neurons=True, refit_residual=2048 * EPS,
-                                     root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
+               "refit_limited": dict(
+                   seed=dvi.SeedPolicy(reuse_neurons=True, refit_residual=2048 * EPS),
+                   root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
                }[config]
     return dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(nodes),
                          **options)

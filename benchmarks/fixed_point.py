@@ -143,12 +143,12 @@ def _warm_step(problem, h):
         return optx.root_find(form.reduced_residual, dvi.RoundoffNewton(ftol=0.0), z0,
                               (ctx, span), options=options, max_steps=50).value
 
-    ctx = solver._context(term, 0.0, h, (q, p), problem.args)
+    ctx = solver.step_context(term, 0.0, h, (q, p), problem.args)
     span = form.span(basis.zeros(dim, dtype), ctx)
     z = root(ctx, span, form.start(lambda tau: q, p, span, ctx))
     theta = basis.advance(form.expand(form.coefficients(z[0], ctx), span), 1.0)
     q1, p1 = form.projected_end_state(z, span, ctx)
-    ctx = solver._context(term, h, 2 * h, (q1, p1), problem.args)
+    ctx = solver.step_context(term, h, 2 * h, (q1, p1), problem.args)
     q_end, dq_end = basis.value_and_derivative(theta, jnp.ones((), dtype))
     p_end = term.momentum(2 * h, q_end, dq_end / h, problem.args)
     z0 = form.start(lambda tau: basis.evaluate(theta, tau), p_end, span, ctx)
@@ -301,7 +301,7 @@ def _stepper(problem, h, n, root_finder, carry_jacobian):
     dtype = problem.y0[0].dtype
 
     def setup(t, q, p):
-        ctx = solver._context(term, t, t + h, (q, p), args)
+        ctx = solver.step_context(term, t, t + h, (q, p), args)
         return ctx, form.span(basis.zeros(dim, dtype), ctx)
 
     def solve(ctx, span, z0, rf, jacobian=form.reduced_jacobian):

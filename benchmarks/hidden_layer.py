@@ -65,7 +65,7 @@ def make_solver(activation, width, nodes, rtol=None):
 
 # -- one projected step -----------------------------------------------------------------------
 def context(solver, problem, t, h, q0, p0):
-    return solver._context(problem.term, t, t + h, (q0, p0), problem.args)
+    return solver.step_context(problem.term, t, t + h, (q0, p0), problem.args)
 
 
 def differentiable_span(form, ctx, w, beta):
@@ -201,8 +201,8 @@ def oga_hidden(solver, problem, t, h, q0, p0):
 def _oga(solver, term, args, h):
     def fit(t, q0, p0):
         state = solver.init(term, t, t + h, (q0, p0), args)
-        ctx = solver._context(term, t, t + h, (q0, p0), args)
-        (theta, _), _, _ = solver.seed_policy._cold_seed(
+        ctx = solver.step_context(term, t, t + h, (q0, p0), args)
+        (theta, _), _, _ = solver.seeder.cold_seed(
             ctx, state.theta, state.fresh, state.history
         )
         _, w, beta = ctx.basis.split(theta)
@@ -722,10 +722,10 @@ def main(argv=None):
     term, pargs = fx.problem.term, fx.problem.args
     for label, (layer, solver) in layers.items():
         def one(t, q, p, layer=layer, solver=solver):
-            ctx = solver._context(term, t, t + fx.h, (q, p), pargs)
+            ctx = solver.step_context(term, t, t + fx.h, (q, p), pargs)
             if layer is None:
                 state = solver.init(term, t, t + fx.h, (q, p), pargs)
-                (theta, _), _, _ = solver.seed_policy._cold_seed(ctx, state.theta, state.fresh,
+                (theta, _), _, _ = solver.seeder.cold_seed(ctx, state.theta, state.fresh,
                                                      state.history)
                 _, w, beta = ctx.basis.split(theta)
             else:

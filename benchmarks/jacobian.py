@@ -49,7 +49,7 @@ def measure(name: str, repeats: int) -> dict:
     problem = getattr(problems, name)(dtype=jnp.float64)
     solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(nodes),
                            formulation=dvi.FreeEndpoints())
-    ctx = solver._context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+    ctx = solver.step_context(problem.term, 0.0, 0.1, problem.y0, problem.args)
     dim = ctx.q0.shape[0]
     theta = 0.5 * jax.random.normal(jax.random.PRNGKey(0), (solver.basis.num_params(), dim))
     flat, unravel = ravel_pytree((theta, ctx.p0 + 0.1))

@@ -33,6 +33,7 @@ runs at most M chunks in this call (0: only report what the checkpoint holds).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 
@@ -51,13 +52,14 @@ from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.bench.harness import retry_step_budget  # noqa: E402
 
 EPS = float(jnp.finfo(jnp.float64).eps)
-FAST = dict(reuse_neurons=True,
+FAST = dict(seed=dvi.SeedPolicy(reuse_neurons=True),
             root_finder=dvi.LevenbergMarquardt(jacobian="auto", settle=0, otol=2.0**-39))
-CONFIGS = {"fast": FAST, "guarded": dict(FAST, refit_iterations=12),
+CONFIGS = {"fast": FAST,
+           "guarded": dict(FAST, seed=dvi.SeedPolicy(reuse_neurons=True, refit_iterations=12)),
            "default": dict(root_finder=dvi.LevenbergMarquardt(jacobian="auto")),
            "fwd": dict(formulation=dvi.FreeEndpoints()),
            "projected": {},
-           "long-run": dict(reuse_neurons=True, refit_residual=2048 * EPS,
+           "long-run": dict(seed=dvi.SeedPolicy(reuse_neurons=True, refit_residual=2048 * EPS),
                             root_finder=dvi.LevenbergMarquardt(jacobian="auto"))}
 
 
@@ -206,7 +208,7 @@ def main(argv=None):
     if os.environ.get("MAXIT"):
         kw["root_find_max_steps"] = int(os.environ["MAXIT"])
     if ns.no_restart:
-        kw["restart_failed"] = False
+        kw["seed"] = dataclasses.replace(kw.get("seed", dvi.SeedPolicy()), restart_failed=False)
     solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, ns.width),
                            dvi.GaussLegendre(ns.nodes), **kw)
     h, n = ns.h, ns.steps

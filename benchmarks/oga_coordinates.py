@@ -23,8 +23,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
-from diffrax_vi.oga import oga_fit  # noqa: E402
-from diffrax_vi.seeding.fit import fit_network, fit_problem  # noqa: E402
+from diffrax_vi.oga import fit_network, oga_fit  # noqa: E402
+from diffrax_vi.parameter_seed import fit_problem  # noqa: E402
 
 INTERVAL = (-math.pi, math.pi)
 

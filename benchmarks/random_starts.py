@@ -34,7 +34,7 @@ def random_starts(count: int, seed: int = 0):
 def failures_for_width(width: int, starts, h: float = 0.1, steps: int = 10, preset=None):
     base = problems.harmonic_oscillator()
     ts = jnp.linspace(0.0, steps * h, steps + 1)
-    seed = {} if preset is None else dict(initial_guess=getattr(dvi, preset)())
+    seed = {} if preset is None else dict(seed=dvi.SeedPolicy(initial_guess=getattr(dvi, preset)()))
     solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(8),
                            formulation=dvi.FreeEndpoints(), **seed)
     run = eqx.filter_jit(lambda y0: diffrax.diffeqsolve(

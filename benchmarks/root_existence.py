@@ -44,11 +44,10 @@ MAX_ITERATIONS = 1000
 # package's default), except in the last seed.
 TEN = dvi.IntegratorExtrapolation(substeps=10)
 SEEDS = {
-    "OGA1d (10 sub-steps)": dict(initial_trajectory=TEN),
-    "OGA2d": dict(initial_guess=dvi.OGA2d(), initial_trajectory=TEN),
-    "OGA2d, |w| up to 8": dict(initial_guess=dvi.OGA2d(dvi.WeightBiasGrid2d()),
-                               initial_trajectory=TEN),
-    "100 midpoint sub-steps": dict(initial_trajectory=dvi.IntegratorExtrapolation(substeps=100)),
+    "OGA1d (10 sub-steps)": dvi.SeedPolicy(TEN),
+    "OGA2d": dvi.SeedPolicy(TEN, initial_guess=dvi.OGA2d()),
+    "OGA2d, |w| up to 8": dvi.SeedPolicy(TEN, initial_guess=dvi.OGA2d(dvi.WeightBiasGrid2d())),
+    "100 midpoint sub-steps": dvi.SeedPolicy(dvi.IntegratorExtrapolation(substeps=100)),
 }
 
 
@@ -80,7 +79,7 @@ def main(argv=None) -> None:
         strict, lax = (
             dvi.NetworkVI(basis, dvi.GaussLegendre(args.nodes),
                           root_finder=dvi.LevenbergMarquardt(convergence=test),
-                          root_find_max_steps=MAX_ITERATIONS, **SEEDS[name])
+                          root_find_max_steps=MAX_ITERATIONS, seed=SEEDS[name])
             for test in ("strict", "reference"))
 
         @eqx.filter_jit

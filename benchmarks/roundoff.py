@@ -336,7 +336,7 @@ def energy_bias(steps: int, members: int) -> None:
     eps = float(np.finfo(np.float64).eps)
     for name, options in bias_configs().items():
         solver = _bias_solver(options)
-        ctx = solver._context(problem.term, 0.0, h, problem.y0, problem.args)
+        ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
         span = _span(solver, ctx)
 
         def run(q, p, solver=solver):

@@ -44,7 +44,7 @@ def main():
     for name in args.presets:
         for label, (activation, width) in NETWORKS.items():
             solver = dvi.NetworkVI(dvi.ShallowNetBasis(activation, width), dvi.GaussLegendre(8),
-                                   initial_guess=getattr(dvi, name)())
+                                   seed=dvi.SeedPolicy(initial_guess=getattr(dvi, name)()))
             run = eqx.filter_jit(lambda y0, solver=solver: diffrax.diffeqsolve(
                 problem.term, solver, problem.t0, problem.t1, problem.dt, y0,
                 saveat=diffrax.SaveAt(ts=ts, solver_state=True), throw=False))

@@ -54,7 +54,7 @@ RULES = {
 def compiled_run(problem, nodes: int, steps: int, rule: str, substeps: int, activation):
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(activation, 10), dvi.GaussLegendre(nodes),
-        initial_trajectory=dvi.IntegratorExtrapolation(substeps=substeps),
+        seed=dvi.SeedPolicy(initial_trajectory=dvi.IntegratorExtrapolation(substeps=substeps)),
         root_finder=dvi.LevenbergMarquardt(**RULES[rule]))
 
     @eqx.filter_jit

@@ -93,7 +93,7 @@ CONFIGS = {
     "all-parameter": dict(formulation=dvi.FreeEndpoints()),
     "fast": dict(
         formulation=dvi.FreeEndpoints(),
-        reuse_neurons=True,
+        seed=dvi.SeedPolicy(reuse_neurons=True),
         root_finder=dvi.LevenbergMarquardt(**_LM_EARLY_STOP),
     ),
     "early-stop": dict(

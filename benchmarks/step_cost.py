@@ -110,7 +110,7 @@ def main():
     n = args.steps
 
     problem = problems.harmonic_oscillator(dtype=jnp.float64).with_span(n_steps=n, dt=H)
-    extra = {} if args.dict_amount is None else dict(dict_amount=args.dict_amount)
+    guess = dvi.OGA1d() if args.dict_amount is None else dvi.OGA1d(dict_amount=args.dict_amount)
     basis = dvi.ShallowNetBasis(dvi.tanh, 10)
     cases = [
         ("NetworkVI", "IntegratorExtrapolation (OGA)", dvi.IntegratorExtrapolation()),
@@ -120,7 +120,8 @@ def main():
         (
             name,
             seed,
-            dvi.NetworkVI(basis, dvi.GaussLegendre(8), initial_trajectory=s, **extra),
+            dvi.NetworkVI(basis, dvi.GaussLegendre(8),
+                          seed=dvi.SeedPolicy(initial_trajectory=s, initial_guess=guess)),
             dict(max_steps=n + 1),
         )
         for name, seed, s in cases
@@ -144,7 +145,7 @@ def main():
     print(
         f"problem: harmonic oscillator, float64, N = {n} steps of h = {H} (t1 = {problem.t1:g}),"
         f" {args.repeats} repeats; NetworkVI: ShallowNetBasis(tanh, 10), GaussLegendre(8),"
-        f" dict_amount = {runs[0][2].dict_amount}\n"
+        f" dict_amount = {runs[0][2].seed.initial_guess.dict_amount}\n"
     )
 
     rows = []

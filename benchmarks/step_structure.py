@@ -103,7 +103,7 @@ def _measure_fn(solver, problem, steps: int):
 
 
 def _matrices(solver, problem, theta, y_start, p_end, t_start, dt):
-    ctx = solver._context(problem.term, t_start, t_start + dt, y_start, problem.args)
+    ctx = solver.step_context(problem.term, t_start, t_start + dt, y_start, problem.args)
     basis, form = ctx.basis, solver.formulation
     nodes, weights = ctx.nodes, ctx.weights
     taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], nodes.dtype)])

@@ -15,6 +15,8 @@ product with `J₀⁻¹` instead of a Jacobian, an LU factorisation and a line s
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -24,6 +26,7 @@ from jaxtyping import Array
 from .lazy import unless_all_skip
 from .precision import lapack_dtype
 from .projection import NewtonState, RoundoffNewton
+from .step_hints import hints_of
 
 __all__ = ["FixedPointIteration"]
 
@@ -58,7 +61,7 @@ def _apply(factors: tuple[Array, ...], f: Array) -> Array:
 class FixedPointIteration(RoundoffNewton):
     """The chord iteration `z ← z − J₀⁻¹ F(z)` for a square system, run to round-off.
 
-    The Jacobian (`options["jacobian"]` where the caller gives one, else `jax.jacfwd`) is
+    The Jacobian (the hint `jacobian` where the caller gives one, else `jax.jacfwd`) is
     formed and LU-factorised once, at the start of the solve; every iteration then costs one
     residual and one application of the factors. It converges linearly, at a rate that is
     small when
@@ -76,7 +79,7 @@ class FixedPointIteration(RoundoffNewton):
     residual as `nonfinite`, so an iteration that cannot contract (a stiff problem, a long
     step) fails loudly and the step is rejected rather than accepted wrong.
 
-    `options["restart"] = (first_try, start)` has the meaning it has for `RoundoffNewton`;
+    the hint `restart = (first_try, start)` has the meaning it has for `RoundoffNewton`;
     the Jacobian is formed and factorised afresh at the restart point.
 
     **Arguments:**
@@ -114,6 +117,8 @@ class FixedPointIteration(RoundoffNewton):
     `refreshes` (the Jacobians formed after the first).
     """
 
+    hints_read: ClassVar[frozenset[str]] = frozenset({"scale", "jacobian", "restart", "kinetic"})
+
     refresh: float | None = eqx.field(static=True, default=None)
     inverse: bool = eqx.field(static=True, default=True)
     matrix: str = eqx.field(static=True, default="jacobian")
@@ -146,7 +151,7 @@ class FixedPointIteration(RoundoffNewton):
         flat = ravel_pytree(f)[0]
         dtype = ravel_pytree(y)[0].dtype
         if self.matrix == "kinetic":
-            kinetic = options.get("kinetic")
+            kinetic = hints_of(options).kinetic
             if kinetic is None:
                 raise ValueError(
                     "FixedPointIteration(matrix='kinetic') needs the kinetic part of the "
@@ -170,7 +175,7 @@ class FixedPointIteration(RoundoffNewton):
         del tags
         flat_y, unravel = ravel_pytree(y)
         dtype = flat_y.dtype
-        scale = jnp.asarray(options.get("scale", 1.0), dtype)
+        scale = jnp.asarray(hints_of(options).scale, dtype)
         floor = self._tolerance("floor", dtype) * scale
 
         def residual(v):
@@ -237,7 +242,7 @@ class FixedPointIteration(RoundoffNewton):
         # before it.
         at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)
         restarted = state.restarted
-        restart = options.get("restart")
+        restart = hints_of(options).restart
         give_up = None
         if restart is not None:
             first_try, start = restart
@@ -268,7 +273,7 @@ class FixedPointIteration(RoundoffNewton):
                     point, f_point = unless_all_skip(give_up, fresh_start, current)
                 if self.matrix == "kinetic" and self.refresh is None:
                     # a restart: the kinetic matrix at the restart point
-                    return point, f_point, (options["kinetic"](unravel(point), args),)
+                    return point, f_point, (hints_of(options).kinetic(unravel(point), args),)
                 jac = self._jacobian(fn, unravel(point), args, options)
                 if self.matrix == "kinetic":
                     # the kinetic matrix gives way to the Jacobian itself (Newton's update)

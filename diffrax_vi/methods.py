@@ -19,27 +19,24 @@ The reference's keyword names are accepted (and translated); anything else is re
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 from .ansatz.base import AbstractBasis
 from .ansatz.dense import DenseNetBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
+from .ansatz.symmetry import MirrorPairs, SharedMirrorPairs
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .nonlinear import AbstractDampedNewton, RegularisedNewton
 from .oga import OGA, OGA1d, OGA1dNormalized
-from .oga.symmetry import MirrorPairs, SharedMirrorPairs
+from .parameter_seed import AbstractParameterSeed
 from .projection import RoundoffNewton, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
-from .seeding.fit import AbstractParameterSeed, InitialWeights, LeastSquaresFit
+from .seeding.fit import InitialWeights, LeastSquaresFit
+from .seeding.policy import SeedPolicy
 from .seeding.training import LSGD
 from .seeding.trajectories import (
-    AbstractInitialTrajectory,
-    HermiteExtrapolation,
     IntegratorExtrapolation,
-    NoExtrapolation,
-    PreviousStep,
 )
 from .solver import NetworkVI
 
@@ -69,19 +66,6 @@ _KNOWN = {
 }
 
 
-def _with_substeps(trajectory: AbstractInitialTrajectory, substeps: int):
-    if isinstance(trajectory, PreviousStep):
-        return PreviousStep(first=_with_substeps(trajectory.first, substeps))
-    if isinstance(trajectory, IntegratorExtrapolation):
-        return IntegratorExtrapolation(substeps, trajectory.newton_iterations)
-    if isinstance(trajectory, NoExtrapolation):
-        return NoExtrapolation(substeps)
-    if isinstance(trajectory, HermiteExtrapolation):
-        first = None if trajectory.first is None else _with_substeps(trajectory.first, substeps)
-        return HermiteExtrapolation(substeps, first)
-    return trajectory
-
-
 def _check_options(name: str, options: dict[str, Any]) -> None:
     unknown = set(options) - _KNOWN - _SOLVER_OPTIONS - _NO_EFFECT
     if unknown:
@@ -107,7 +91,7 @@ def _build(
     kwargs: dict[str, Any] = {k: v for k, v in options.items() if k in _SOLVER_OPTIONS}
     trajectory = options.get("initial_trajectory_method") or IntegratorExtrapolation()
     if options.get("extrapolation_substep") is not None:
-        trajectory = _with_substeps(trajectory, options["extrapolation_substep"])
+        trajectory = trajectory.with_substeps(options["extrapolation_substep"])
     guess = options.get("initial_guess_method") or default_guess
     epochs = options.get("training_epochs")
     if epochs is not None and hasattr(guess, "epochs"):
@@ -118,14 +102,17 @@ def _build(
         kwargs["root_finder"] = RegularisedNewton(lam=options["regularization_factor"])
     if options.get("max_iterations") is not None:
         kwargs["root_find_max_steps"] = options["max_iterations"]
+    dictionary = {k: options[k] for k in ("bias_interval", "dict_amount") if k in options}
+    if dictionary:
+        try:
+            guess = guess.with_dictionary(**dictionary)
+        except TypeError as error:
+            raise TypeError(f"{name}: {error}") from None
     return NetworkVI(
         basis,
         quadrature,
         formulation=formulation,
-        initial_trajectory=trajectory,
-        initial_guess=guess,
-        bias_interval=tuple(float(b) for b in options.get("bias_interval", (-math.pi, math.pi))),
-        dict_amount=options.get("dict_amount", 4000),
+        seed=SeedPolicy(initial_trajectory=trajectory, initial_guess=guess),
         **kwargs,
     )
 

@@ -25,7 +25,7 @@ unknowns' dtype (`default_tolerances`). Because the Jacobian is numerically rank
 of the residual lies in directions the iteration cannot reduce and that do not move the step's
 result. So besides a residual at `ftol`, a step also counts as converged when the residual has
 stopped falling, is below `floor`, and the caller's outputs of interest (passed as the callable
-`options["outputs"]`; `NetworkVI` passes `y ↦ (q_{n+1}, p_{n+1})`) no longer change beyond a
+the hint `outputs`; `NetworkVI` passes `y ↦ (q_{n+1}, p_{n+1})`) no longer change beyond a
 few ulps. A residual that stops falling anywhere else is a failure.
 
 **How a solve fails.** `optimistix.RESULTS.nonlinear_max_steps_reached` (iteration cap),
@@ -34,11 +34,11 @@ times in a row, above the tolerance), `nonfinite` (NaN/inf in the residual, or e
 the step) and `singular` (finite residual but a non-finite Newton direction: the linear solve
 broke down). `NetworkVI` turns them into the step failures of `diffrax_vi.results`.
 
-**A second start.** A caller may pass `options["fallback"]`, a function of `args` returning
-another starting point (and optionally `options["fallback_usable"]`, a function of `args`
+**A second start.** A caller may pass the hint `fallback`, a function of `args` returning
+another starting point (and optionally the hint `fallback_usable`, a function of `args`
 returning whether to use it). Where an iteration would end the solve with a failure, the solve
 restarts from that point once, with fresh bookkeeping and the same iteration cap; the final
-state's `restarted` says whether it did. `options["start_at_fallback"]`, a function of `args`
+state's `restarted` says whether it did. The hint `start_at_fallback`, a function of `args`
 returning a boolean, makes the solve begin at the fallback instead of `y` (which then only
 gives the shape), with no restart after it. `NetworkVI` passes a fresh trajectory fit as the
 fallback when its seed may come from the previous step, and starts there when the carried
@@ -48,6 +48,7 @@ seed is unusable: the fit then exists once in the compiled step, evaluated only 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -58,6 +59,7 @@ from jaxtyping import Array
 
 from .lazy import unless_all_skip
 from .linalg import damped_least_squares, solve
+from .step_hints import AbstractStepRootFinder, hints_of
 
 __all__ = ["AbstractDampedNewton", "RegularisedNewton", "LevenbergMarquardt", "default_tolerances"]
 
@@ -66,7 +68,7 @@ def default_tolerances(dtype) -> dict[str, float]:
     """Tolerances used when a root finder leaves them as `None`, scaled by `eps(dtype)`.
 
     Residuals are compared with `tol·scale`, where `scale` comes from the caller through
-    `options["scale"]` (default 1; `NetworkVI` passes `1 + max(|q_n|, |p_n|)`).
+    the hint `scale` (default 1; `NetworkVI` passes `1 + max(|q_n|, |p_n|)`).
 
     - `ftol = min(64·eps, eps^(3/4))`: converged when `max|F| ≤ ftol·scale`;
     - `floor = sqrt(eps)`: also converged when the residual is below `floor·scale`, did not
@@ -79,7 +81,7 @@ def default_tolerances(dtype) -> dict[str, float]:
       and did not halve for `patience_floor` iterations although the outputs still move: the
       iterate then slides along a manifold of near-roots whose outputs differ by less than the
       equations can resolve;
-    - without `options["outputs"]`: converged when the residual did not halve for
+    - without the hint `outputs`: converged when the residual did not halve for
       `patience_floor` iterations while below `eps^(3/4)·scale`.
 
     The output test is what ends most steps: the rank-deficient Jacobian leaves a residual
@@ -109,7 +111,7 @@ class _DampedNewtonState(eqx.Module):
     exact: Array  # whether the last iteration used a Jacobian evaluated at its iterate
     f0: Array  # max|F| at the starting point (for `convergence="reference"`)
     still: Array  # whether the last iteration changed x or F by at most 2 eps (relative)
-    restarted: Array  # whether the solve has restarted from `options["fallback"]` after a failure
+    restarted: Array  # whether the solve has restarted from the hint `fallback` after a failure
     pending: Array  # whether the next iteration starts at the fallback (`start_at_fallback`)
     from_fallback: Array  # whether the solve is running from the fallback (no further restart)
 
@@ -141,17 +143,21 @@ def _start_state(
 
 
 def _flat_outputs(options, y, dtype) -> Array:
-    outputs = options.get("outputs")
+    outputs = hints_of(options).outputs
     if outputs is None:
         return jnp.zeros((0,), dtype)
     return ravel_pytree(outputs(y))[0].astype(dtype)
 
 
-class AbstractDampedNewton(optx.AbstractRootFinder):
+class AbstractDampedNewton(AbstractStepRootFinder):
     """Damped Newton with a dense Jacobian and Armijo backtracking on `½‖F‖²`.
 
     Subclasses choose the step from the Jacobian `J` and residual `F` (`direction`).
     """
+
+    hints_read: ClassVar[frozenset[str]] = frozenset(
+        {"scale", "outputs", "jacobian", "fallback", "fallback_usable", "start_at_fallback"}
+    )
 
     lam: eqx.AbstractVar[float]
     ftol: float | None = None
@@ -208,10 +214,10 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         flat_f, _ = ravel_pytree(f)
         dtype = flat_f.dtype
         jac = jnp.zeros((flat_f.size, ravel_pytree(y)[0].size), dtype)
-        start_at_fallback = options.get("start_at_fallback")
+        start_at_fallback = hints_of(options).start_at_fallback
         pending = (
             jnp.array(False)
-            if start_at_fallback is None or options.get("fallback") is None
+            if start_at_fallback is None or hints_of(options).fallback is None
             else jnp.asarray(start_at_fallback(args))
         )
         return _start_state(
@@ -227,7 +233,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
 
-        if options.get("fallback") is not None:
+        if hints_of(options).fallback is not None:
             y, state = self._switch_to_fallback(residual, args, options, y, state)
             flat_y = ravel_pytree(y)[0]
 
@@ -246,11 +252,12 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
                 return state.f, None
             return residual(flat_y)
 
-        given = options.get("jacobian")
+        given = hints_of(options).jacobian
         if self.jacobian == "structured" and given is None:
             raise ValueError(
                 "jacobian='structured' needs the caller to pass the Jacobian as "
-                "options['jacobian'] (a function of the unknowns and args); NetworkVI does so "
+                "the jacobian of its StepHints (a function of the unknowns and args); NetworkVI "
+                "does so "
                 "for a ShallowNetBasis with free endpoints"
             )
         if given is not None and self.jacobian in ("auto", "structured"):
@@ -363,7 +370,7 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
             refresh=~(ok & (a == 1) & (fmax < 0.25 * jnp.max(jnp.abs(f))))
             | (reused >= self.reuse_jacobian)
             | (fmax <= self.tolerances(dtype)["floor"]
-               * jnp.asarray(options.get("scale", 1.0), dtype)),
+               * jnp.asarray(hints_of(options).scale, dtype)),
             restarted=state.restarted,
             pending=state.pending,
             from_fallback=state.from_fallback,
@@ -373,23 +380,23 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
     def _restartable(self, args, options, state, result=None) -> Array:
         """Whether the solve has failed and may restart from the caller's fallback (`result`:
         the outcome's result, where the caller has it already)."""
-        if options.get("fallback") is None:
+        if hints_of(options).fallback is None:
             return jnp.array(False)
         if result is None:
             _, result = self._outcome(options, state)
-        usable = options.get("fallback_usable")
+        usable = hints_of(options).fallback_usable
         usable = jnp.array(True) if usable is None else usable(args)
         return (result != optx.RESULTS.successful) & ~state.from_fallback & usable
 
     def _switch_to_fallback(self, residual, args, options, y, state):
         """Before an iteration: where the solve is due to start at the caller's fallback point
-        (`options["fallback"](args)`), or failed and may restart there once, continue from
+        (the hint `fallback(args)`), or failed and may restart there once, continue from
         that point with fresh bookkeeping; the iteration cap is shared. The one evaluation of
         the fallback in the compiled loop runs only where some member of a batch needs it."""
         switch = state.pending | self._restartable(args, options, state)
 
         def fresh_start():
-            start = jax.lax.stop_gradient(options["fallback"](args))
+            start = jax.lax.stop_gradient(hints_of(options).fallback(args))
             f, _ = residual(ravel_pytree(start)[0])
             return start, f
 
@@ -415,10 +422,10 @@ class AbstractDampedNewton(optx.AbstractRootFinder):
         """Whether the solve has converged or failed, and its result so far."""
         dtype = state.f.dtype
         tol = self.tolerances(dtype)
-        scale = jnp.asarray(options.get("scale", 1.0), dtype)
+        scale = jnp.asarray(hints_of(options).scale, dtype)
         fmax = jnp.max(jnp.abs(state.f))
         stuck = state.idle >= self.patience_floor
-        if options.get("outputs") is None:
+        if hints_of(options).outputs is None:
             at_floor = (stuck | (state.stalls > 0)) & (fmax <= tol["floor_no_outputs"] * scale)
         else:
             settled = (state.out_change <= tol["otol"]) & (state.idle >= self.settle)
@@ -460,7 +467,7 @@ _COMMON_ARGS = """
       solve (default 3; fewer iterations per step, results that move at the floor level).
     - `patience`: iterations without the residual halving before giving up.
     - `jacobian`: `"fwd"` (default, `jax.jacfwd`), `"rev"` (`jax.jacrev`), `"structured"`
-      (the caller's `options["jacobian"]`, required: a function of the unknowns and `args`
+      (the caller's hint `jacobian`, required: a function of the unknowns and `args`
       returning the dense matrix) or `"auto"` (the caller's matrix where it passes one, else
       `jax.jacfwd`). `NetworkVI` assembles the matrix by coordinate blocks
       (`FreeEndpoints.jacobian`); under `"auto"` it passes it only where the blocks have a

@@ -33,6 +33,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -50,6 +51,7 @@ from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, st
 from .lazy import unless_all_skip
 from .linalg import solve
 from .precision import lapack_dtype
+from .step_hints import AbstractStepRootFinder, hints_of
 
 __all__ = [
     "AbstractHiddenLayer",
@@ -424,18 +426,21 @@ class VariableProjection(FreeEndpoints):
         r = jnp.where(span.live, r, dc)
         return r, -jnp.einsum("dk,kd->d", span.g0, dc)
 
+    def _at_nodes(self, z, args):
+        """What the Jacobians of the reduced residual start from: the step context, the
+        span, the coefficients `δc`, the rule's weights in their dtype, and the curve's
+        values, slopes and times at the nodes."""
+        ctx, span = args[0], args[1]
+        dc, _ = z
+        q, dq = self.node_values(dc, span, ctx.q0)
+        return ctx, span, dc, ctx.weights.astype(dc.dtype), q, dq, ctx.t + ctx.nodes * ctx.h
+
     def reduced_jacobian(self, z, args) -> Array:
         """The Jacobian of `reduced_residual`, dense, in the order of `ravel_pytree`: the
         curve is linear in `δc`, so it needs only the Lagrangian's second derivatives at the
         nodes (one `jax.jacfwd` of `(ϑ, f)` per node)."""
-        ctx, span = args[0], args[1]
-        dc, _ = z
-        dtype = dc.dtype
-        k, dim = dc.shape
-        h = ctx.h
-        b = ctx.weights.astype(dtype)
-        q, dq = self.node_values(dc, span, ctx.q0)
-        ts = ctx.t + ctx.nodes * h
+        ctx, span, dc, b, q, dq, ts = self._at_nodes(z, args)
+        dtype, dim, h = dc.dtype, dc.shape[1], ctx.h
 
         def mf(t, qj, vj):
             return ctx.term.momentum_and_force(t, qj, vj, ctx.args)
@@ -493,14 +498,8 @@ class VariableProjection(FreeEndpoints):
         forces. With `uniform` (`uniform_span`), the system is `A ⊗ M`-structured and the
         inverse costs one `(k + 1)`-square and one `D`-square inverse; otherwise it is formed
         densely."""
-        ctx, span = args[0], args[1]
-        dc, _ = z
-        dtype = dc.dtype
-        k, dim = dc.shape
-        h = ctx.h
-        b = ctx.weights.astype(dtype)
-        q, dq = self.node_values(dc, span, ctx.q0)
-        ts = ctx.t + ctx.nodes * h
+        ctx, span, dc, b, q, dq, ts = self._at_nodes(z, args)
+        dtype, k, h = dc.dtype, dc.shape[0], ctx.h
 
         def momentum(t, qj, vj):
             return ctx.term.momentum_and_force(t, qj, vj, ctx.args)[0]
@@ -592,14 +591,14 @@ class NewtonState(eqx.Module):
     restarted: Array
 
 
-class RoundoffNewton(optx.AbstractRootFinder):
+class RoundoffNewton(AbstractStepRootFinder):
     """Newton's method for a square system with an isolated root, run to round-off.
 
-    Each iteration solves `J d = −F` by LU with a fresh Jacobian (`options["jacobian"]`, a
+    Each iteration solves `J d = −F` by LU with a fresh Jacobian (the hint `jacobian`, a
     function of the unknowns and `args`, where the caller gives one; else `jax.jacfwd`). Far
     from the root a backtracking line search halves the step until `max|F|` falls; within
     `floor` of the root the full step is always taken. The solve ends as converged when
-    `max|F| ≤ ftol · scale` (`options["scale"]`) after an update within `√eps` of the
+    `max|F| ≤ ftol · scale` (the hint `scale`) after an update within `√eps` of the
     unknowns (`confirm`), or when `max|F| ≤ floor · scale` and the Newton update has stopped
     shrinking (rounding has taken over). Quadratic convergence reaches either in a few
     iterations. Every
@@ -607,7 +606,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
     (`nonlinear_divergence`) after `max_stalls` line searches in a row find no decrease, and
     at the iteration cap.
 
-    Given `options["restart"] = (first_try, start)`, a solve that has not converged after
+    Given the hint `restart = (first_try, start)`, a solve that has not converged after
     `first_try` iterations (or has stalled or become non-finite before) starts once more
     from `start(args)`, within the same iteration cap; `start` runs only where a solve needs
     it (under `vmap`: only if some member does). `state.restarted` says whether it did.
@@ -632,6 +631,8 @@ class RoundoffNewton(optx.AbstractRootFinder):
     - `rtol`, `atol`, `norm`: unused; diffrax reads them off the root finder of an implicit
       solver.
     """
+
+    hints_read: ClassVar[frozenset[str]] = frozenset({"scale", "jacobian", "restart"})
 
     ftol: float = 64.0
     floor: float = 4096.0
@@ -669,9 +670,9 @@ class RoundoffNewton(optx.AbstractRootFinder):
 
     @staticmethod
     def _jacobian(fn, y, args, options) -> Array:
-        """The Jacobian at `y`: `options["jacobian"]` where the caller gives one, else
+        """The Jacobian at `y`: the hint `jacobian` where the caller gives one, else
         `jax.jacfwd` of the flattened residual."""
-        given = options.get("jacobian")
+        given = hints_of(options).jacobian
         if given is not None:
             return given(y, args)
         flat, unravel = ravel_pytree(y)
@@ -693,7 +694,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
         del tags
         flat_y, unravel = ravel_pytree(y)
         dtype = flat_y.dtype
-        scale = jnp.asarray(options.get("scale", 1.0), dtype)
+        scale = jnp.asarray(hints_of(options).scale, dtype)
 
         def residual(v):
             out, aux = fn(unravel(v), args)
@@ -736,7 +737,7 @@ class RoundoffNewton(optx.AbstractRootFinder):
         stalls = jnp.where(decreased, 0, state.stalls + 1)
         step_norm = jnp.where(decreased, norm, state.step_norm)
         restarted = state.restarted
-        restart = options.get("restart")
+        restart = hints_of(options).restart
         if restart is not None:
             first_try, start = restart
             give_up = ~restarted & ~(converged | at_floor) & (

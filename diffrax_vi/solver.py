@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import math
 from typing import Any, ClassVar
 
 import diffrax
@@ -31,22 +29,12 @@ from .formulation import (
 )
 from .interpolation import NetworkInterpolation
 from .nonlinear import LevenbergMarquardt
-from .oga import OGA, OGA1d, OGAReference
 from .precision import compensated_add
 from .projection import RoundoffNewton, UniformLayer, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport
-from .seeding.fit import AbstractParameterSeed
-from .seeding.policy import (
-    SeedPolicy,
-    check_seed_options,
-    needs_all_parameter_step,
-)
+from .seeding.policy import Seeder, SeedPolicy
 from .seeding.policy import residual_scale as _residual_scale
-from .seeding.trajectories import (
-    AbstractInitialTrajectory,
-    IntegratorExtrapolation,
-)
 from .solver_options import check_options
 from .solver_state import NetworkVIState
 from .step_solve import companion_error, solve_all, solve_projected
@@ -80,25 +68,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       all-parameter `FreeEndpoints()` / `InterpolatingEndpoints()`. Default `None`:
       `VariableProjection()` for a `ShallowNetBasis` without mirrored pairs whose activation
       `UniformLayer` suits, unless an option of the all-parameter step is given (a damped root
-      finder, `reuse_neurons`, `PreviousStep()`, `initial_guess`, `bias_interval`,
-      `dict_amount`); otherwise `FreeEndpoints()`.
-    - `initial_trajectory`: the trajectory estimate a seed is fitted to:
-      `IntegratorExtrapolation()` (default), `HermiteExtrapolation()`, `NoExtrapolation()`, or
-      `PreviousStep()` (the previous curve continued). The projected step restarts from it
-      where its start from the previous curve does not converge.
-    - `initial_guess`: how seed parameters are fitted to that trajectory: an OGA configuration
-      (default `OGA1d()`), `LSGD()`, `TrainingMethod()`, `LeastSquaresFit()` (linear
-      ansätze), `InitialWeights(...)`.
-    - `bias_interval`, `dict_amount`: the OGA dictionary's bias range (default `(-π, π)`) and
-      number of bias intervals (default 4000).
-    - `reuse_neurons`: seed an all-parameter step with the previous step's neurons and output
-      weights refitted to the new trajectory, where that fit is within `refit_tolerance`
-      (default `√eps`); otherwise, and on the first step, run the OGA. Default `False`.
-    - `refit_residual`, `refit_iterations`: refit only from a previous step whose solve ended
-      at most at this relative residual, or within this many iterations (default `None`: no
-      limit); guards for long runs (choosing page).
-    - `restart_failed`: where a solve from a seed carried over from the previous step fails,
-      restart it once from a fresh fit. Default `True`.
+      finder, or a `seed` with `reuse_neurons`, `PreviousStep()` or an `initial_guess` other
+      than the default); otherwise `FreeEndpoints()`.
+    - `seed`: where each step's solve starts, a `SeedPolicy` (its trajectory estimate, the fit
+      of seed parameters to it, refits of the previous step's neurons). Default
+      `SeedPolicy()`.
     - `root_finder`: the per-step root finder. Default `None`: `RoundoffNewton()` for the
       projected step (not confirming on a network's span), `LevenbergMarquardt()` for the
       all-parameter steps. `FixedPointIteration` also serves the projected step. A plain
@@ -119,21 +93,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     basis: AbstractBasis
     quadrature: AbstractQuadrature = GaussLegendre(8)
-    initial_trajectory: AbstractInitialTrajectory = IntegratorExtrapolation()
-    initial_guess: OGA | OGAReference | AbstractParameterSeed = OGA1d()
-    bias_interval: tuple[float, float] = eqx.field(static=True, default=(-math.pi, math.pi))
-    dict_amount: int = eqx.field(static=True, default=4000)
-    reuse_neurons: bool = eqx.field(static=True, default=False)
-    refit_tolerance: float | None = eqx.field(static=True, default=None)
-    refit_residual: float | None = eqx.field(static=True, default=None)
-    refit_iterations: int | None = eqx.field(static=True, default=None)
-    restart_failed: bool = eqx.field(static=True, default=True)
+    formulation: AbstractFormulation | None = None
+    seed: SeedPolicy = SeedPolicy()
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = eqx.field(static=True, default=100)
     adjoint: optx.AbstractAdjoint = optx.ImplicitAdjoint(
         linear_solver=lx.AutoLinearSolver(well_posed=False)
     )
-    formulation: AbstractFormulation | None = None
     error_estimate: int | None = eqx.field(static=True, default=None)
     iteration_log: int = eqx.field(static=True, default=0)
     compensated: bool = eqx.field(static=True, default=True)
@@ -141,6 +107,12 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     term_structure: ClassVar = AbstractMechanicalTerm
 
     def __post_init__(self):
+        # Checked first: the defaults below read the seed policy.
+        if not isinstance(self.seed, SeedPolicy):
+            raise TypeError(
+                "seed must be a SeedPolicy (e.g. SeedPolicy(initial_guess=OGA1d())), got "
+                f"{self.seed!r}"
+            )
         if self.formulation is None:
             self.formulation = self._default_formulation()
         if self.root_finder is None:  # the formulation's own default
@@ -156,41 +128,26 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def __check_init__(self):
         check_options(self)
-        check_seed_options(
-            self.basis, self.formulation, initial_trajectory=self.initial_trajectory,
-            initial_guess=self.initial_guess, bias_interval=self.bias_interval,
-            dict_amount=self.dict_amount, reuse_neurons=self.reuse_neurons,
-            refit_tolerance=self.refit_tolerance, refit_residual=self.refit_residual,
-            refit_iterations=self.refit_iterations, restart_failed=self.restart_failed,
-            changed=self._seed_options_set(),
-        )
+        self.seed.check(self.basis, self.formulation)
 
     def _default_formulation(self) -> AbstractFormulation:
         """`VariableProjection()` where the ansatz and the other options allow it, else
         `FreeEndpoints()`: the projection's fixed layer needs a shallow network of an
-        activation it suits; a damped root finder, `reuse_neurons`, `PreviousStep()` and the
-        seed-fit options (`initial_guess`, `bias_interval`, `dict_amount`) belong to the
-        all-parameter step."""
+        activation it suits; a damped root finder, `reuse_neurons`, `PreviousStep()` and a
+        chosen `initial_guess` belong to the all-parameter step."""
         projectable = (
             isinstance(self.basis, ShallowNetBasis)
             and not self.basis.mirrored
             and UniformLayer.suits(self.basis.activation)
         )
         all_parameter_options = (
-            needs_all_parameter_step(self.initial_trajectory, self.reuse_neurons)
-            or bool(self._seed_options_set())
+            self.seed.all_parameter_only
+            or self.seed.fits_a_seed
             or not (self.root_finder is None or isinstance(self.root_finder, RoundoffNewton))
         )
         if projectable and not all_parameter_options:
             return VariableProjection()
         return FreeEndpoints()
-
-    def _seed_options_set(self) -> list[str]:
-        """The options of the seed fit given other values than their defaults
-        (`initial_trajectory` is not one: the projected step restarts from it)."""
-        defaults = {f.name: f.default for f in dataclasses.fields(type(self))}
-        names = ("initial_guess", "bias_interval", "dict_amount")
-        return [name for name in names if getattr(self, name) != defaults[name]]
 
     @property
     def _roots_may_drift(self) -> bool:
@@ -210,7 +167,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return None if self.error_estimate is None else 2 * self.error_estimate + 1
 
     # -- helpers --------------------------------------------------------------------------------
-    def _context(self, terms, t0, t1, y0, args) -> StepContext:
+    def step_context(self, terms, t0, t1, y0, args) -> StepContext:
+        """What one step from `t0` to `t1` works with: the term, the ansatz placed on the
+        step, the start, the quadrature in the state's dtype."""
         term, direction = unwrap_term(terms)
         q0, p0 = _check_state(y0)
         dtype = q0.dtype
@@ -223,16 +182,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return StepContext(term, basis, t, h, q0, p0, args, nodes, weights)
 
     @property
-    def seed_policy(self) -> SeedPolicy:
-        """The seed policy of this solver's options."""
-        return SeedPolicy.build(
-            self.basis, self.formulation, self.root_finder,
-            initial_trajectory=self.initial_trajectory, initial_guess=self.initial_guess,
-            bias_interval=self.bias_interval, dict_amount=self.dict_amount,
-            reuse_neurons=self.reuse_neurons, refit_tolerance=self.refit_tolerance,
-            refit_residual=self.refit_residual, refit_iterations=self.refit_iterations,
-            restart_failed=self.restart_failed,
-        )
+    def seeder(self) -> Seeder:
+        """The seed policy bound to this solver's ansatz, formulation and root finder."""
+        return self.seed.bind(self.basis, self.formulation, self.root_finder)
 
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
@@ -244,8 +196,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # every step reads, so the check stays in the program.
         check_times(t0=t0, t1=t1)
         t0 = refuse_nonfinite_times(t0, t1)
-        ctx = self._context(terms, t0, t1, y0, args)
-        seed = self.seed_policy.first_record(ctx)
+        ctx = self.step_context(terms, t0, t1, y0, args)
+        seed = self.seeder.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
         return NetworkVIState(
             seed=seed,
@@ -285,9 +237,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     def _step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
         """Seed -> solve -> accept."""
-        ctx = self._context(terms, t0, t1, y0, args)
+        ctx = self.step_context(terms, t0, t1, y0, args)
         state = solver_state
-        seeding = self.seed_policy
+        seeding = self.seeder
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
         if isinstance(self.formulation, VariableProjection):
@@ -388,7 +340,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 lambda a: jnp.where(failed, jnp.asarray(jnp.nan, a.dtype), a), dense_info[key]
             )
         new_state = NetworkVIState(
-            seed=self.seed_policy.accept(ctx, record, theta, curve, q1),
+            seed=self.seeder.accept(ctx, record, theta, curve, q1),
             iterations=state.iterations + n,
             last_iterations=n,
             max_iterations=jnp.maximum(state.max_iterations, n),

@@ -1,16 +1,20 @@
 """Checks of `NetworkVI`'s options that are not about seeding (those are
-`seeding.policy.check_seed_options`): types, the quadrature against the ansatz, and the
+`SeedPolicy.check`): types, the quadrature against the ansatz, and the
 formulation against the root finder."""
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
+
+import optimistix as optx
 
 from .ansatz.base import AbstractBasis
 from .formulation import AbstractFormulation, FreeEndpoints
 from .nonlinear import AbstractDampedNewton
 from .projection import RoundoffNewton, VariableProjection
 from .quadrature import AbstractQuadrature
+from .step_hints import AbstractStepRootFinder, missing_hints
 
 __all__ = ["check_options"]
 
@@ -28,6 +32,20 @@ def check_options(solver: Any) -> None:
         raise TypeError(
             "formulation must be FreeEndpoints(), InterpolatingEndpoints() or "
             f"VariableProjection(), got {solver.formulation!r}"
+        )
+    if not isinstance(solver.root_finder, optx.AbstractRootFinder):
+        raise TypeError(
+            "root_finder must be an optimistix root finder such as RoundoffNewton() or "
+            f"LevenbergMarquardt(), got {solver.root_finder!r}"
+        )
+    if not isinstance(solver.root_finder, AbstractStepRootFinder):
+        lacks = "; ".join(missing_hints(solver.root_finder).values())
+        warnings.warn(
+            f"{type(solver.root_finder).__name__} does not read NetworkVI's step hints, so it "
+            f"solves each step without: {lacks}. LevenbergMarquardt(), RegularisedNewton(), "
+            "RoundoffNewton() and FixedPointIteration() read them.",
+            UserWarning,
+            stacklevel=4,
         )
     if not isinstance(solver.compensated, bool):
         raise TypeError(f"compensated must be True or False, got {solver.compensated!r}")

@@ -29,7 +29,7 @@ class NetworkVIState(eqx.Module):
     - `warm_starts`: number of steps seeded by `PreviousStep`'s warm start (the others were
       seeded by a trajectory fit).
     - `refits`: number of steps seeded by the previous step's neurons with refitted output
-      weights instead of a fresh OGA fit (`NetworkVI.reuse_neurons`).
+      weights instead of a fresh OGA fit (`SeedPolicy.reuse_neurons`).
     - `restarts`: number of steps whose solve failed from a seed carried over from the
       previous step (warm start or refit) and restarted from a fresh trajectory fit (with
       `LevenbergMarquardt` or `RegularisedNewton`; the iteration cap covers both tries).

@@ -12,6 +12,7 @@ Each takes the solver whose options it reads (`formulation`, `root_finder`,
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -29,6 +30,7 @@ from .quadrature import GaussLegendre
 from .results import from_root_find
 from .seeding.policy import Seed
 from .seeding.policy import residual_scale as _residual_scale
+from .step_hints import StepHints, step_options
 
 __all__ = [
     "FIRST_TRY", "companion_error", "jacobian_option", "projected_root_find", "solve_all",
@@ -58,7 +60,7 @@ def solve_projected(vi: Any, ctx: StepContext, hidden, curve, p1_start,
     if restart_history is not None and cap > FIRST_TRY:
         # Inside the root finder, so that the trajectory seed is computed only where a solve
         # needs it, and under vmap only if some member does.
-        seeding = vi.seed_policy
+        seeding = vi.seeder
 
         def start(args):
             ctx, span, history = args
@@ -83,15 +85,15 @@ def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, res
     options the solver hands its root finder (residual scale, Jacobian, kinetic matrix, and
     the restart `(first_try, start)` where given)."""
     form = vi.formulation
-    options = dict(
+    hints = StepHints(
         scale=_residual_scale(ctx),
         jacobian=form.reduced_jacobian,
         kinetic=functools.partial(form.kinetic_inverse, uniform=form.uniform_span(span)),
+        restart=restart,
     )
-    if restart is not None:
-        options["restart"] = restart
     return optx.root_find(
-        form.reduced_residual, vi.root_finder, z0, (ctx, span, history), options=options,
+        form.reduced_residual, vi.root_finder, z0, (ctx, span, history),
+        options=step_options(hints),
         max_steps=max_steps, adjoint=vi.adjoint, throw=False,
     )
 
@@ -100,17 +102,18 @@ def solve_all(vi: Any, ctx: StepContext, seed: Seed):
     """The step's equations in all the ansatz parameters (the reference's solve), from `seed`
     with the seed policy's fallback. Returns the parameters, the end state, the iterations,
     the result, the final residual and its tolerance, and whether it restarted."""
-    x0, seed_args, seed_options = vi.seed_policy.root_find_start(seed)
+    x0, seed_args, fallback = vi.seeder.root_find_start(seed)
     jacobian = jacobian_option(vi.root_finder, vi.formulation, ctx)
-    options = dict(
+    hints = dataclasses.replace(
+        fallback,
         scale=_residual_scale(ctx),
         outputs=lambda x: vi.formulation.end_state(x, ctx),
         jacobian=None if jacobian is None else lambda x, a: jacobian(x, a[0]),
-        **seed_options,
     )
     sol = optx.root_find(
         lambda x, a: vi.formulation.residual(x, a[0]), vi.root_finder, x0, (ctx, *seed_args),
-        options=options, max_steps=vi.root_find_max_steps, adjoint=vi.adjoint, throw=False,
+        options=step_options(hints), max_steps=vi.root_find_max_steps, adjoint=vi.adjoint,
+        throw=False,
     )
     x = sol.value
     residual, tolerance = _final_residual(vi, sol, ctx)
@@ -157,10 +160,10 @@ def companion_error(vi: Any, ctx: StepContext, curve, q1, p1, ok) -> tuple[Array
         root_finder,
         seed,
         companion,
-        options=dict(
+        options=step_options(StepHints(
             scale=_residual_scale(ctx), outputs=lambda x: form.end_state(x, companion),
             jacobian=jacobian_option(root_finder, form, companion),
-        ),
+        )),
         max_steps=vi.root_find_max_steps,
         adjoint=vi.adjoint,
         throw=False,
@@ -174,7 +177,7 @@ def companion_error(vi: Any, ctx: StepContext, curve, q1, p1, ok) -> tuple[Array
 
 
 def jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepContext):
-    """The Jacobian the solver hands its root finder (`options["jacobian"]`, a function of the
+    """The Jacobian the solver hands its root finder (the hint `jacobian`, a function of the
     unknowns and the step context): the block assembly of `formulation` where the root finder
     asks for it (`jacobian="structured"`), or leaves the choice to us (`"auto"`) and the blocks
     have a closed form; else `None`. The context comes in as the root find's `args`, not by

@@ -348,8 +348,8 @@ def test_published_suites_hold_the_documented_networkvi_settings():
     setting = SETTINGS["harmonic_oscillator"]
     warm, fast, projected = networkvi_entries(setting, False)
     assert warm.name.endswith("warm") and isinstance(
-        warm.solver.initial_trajectory, dvi.PreviousStep)
-    assert fast.name.endswith("fast") and fast.solver.reuse_neurons
+        warm.solver.seed.initial_trajectory, dvi.PreviousStep)
+    assert fast.name.endswith("fast") and fast.solver.seed.reuse_neurons
     assert fast.solver.root_finder.settle == 0 and fast.solver.root_finder.jacobian == "auto"
     assert projected.name == "NetworkVI tanh10 R8 projection" and projected.family == "ours"
     assert isinstance(projected.solver.formulation, dvi.VariableProjection)
@@ -358,7 +358,8 @@ def test_published_suites_hold_the_documented_networkvi_settings():
     assert len(networkvi_entries(setting, True)) == 5
     first, long_run = energy_entries(setting)
     assert first.name == warm.name and long_run.name.endswith("long-run")
-    assert long_run.solver.reuse_neurons and long_run.solver.refit_residual == pytest.approx(
+    policy = long_run.solver.seed
+    assert policy.reuse_neurons and policy.refit_residual == pytest.approx(
         2048 * np.finfo(np.float64).eps)
     assert {e.family for e in (warm, fast, first, long_run)} == {"ours"}
 
@@ -569,7 +570,8 @@ def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, mo
         module.main(["harmonic_oscillator", "0.2", "5", "6", "6", "fast", "--no-restart",
                      "--chunks", "5", "--checkpoint", checkpoint])
     # an edited configuration is noticed too
-    monkeypatch.setitem(module.CONFIGS, "fast", dict(module.FAST, refit_iterations=12))
+    monkeypatch.setitem(module.CONFIGS, "fast", dict(
+        module.FAST, seed=dvi.SeedPolicy(reuse_neurons=True, refit_iterations=12)))
     with pytest.raises(SystemExit, match="different run"):
         module.main(run + ["--chunks", "5", "--checkpoint", checkpoint])
     monkeypatch.undo()

@@ -48,7 +48,7 @@ def run(problem, solver, h, n, y0=None):
 def step_system(solver, problem, h):
     """The first step's projected system (context, span) and a start from uniform motion."""
     form = solver.formulation
-    ctx = solver._context(problem.term, 0.0, h, problem.y0, problem.args)
+    ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
     dim = ctx.q0.shape[0]
     if isinstance(solver.basis, dvi.ShallowNetBasis):
         hidden = form.hidden.parameters(solver.basis, dim, ctx.q0.dtype)
@@ -277,7 +277,7 @@ def test_kinetic_inverse_is_the_jacobian_inverse_without_forces(kind, uniform):
     y0 = (jnp.array([0.3, -0.2]), jnp.array([0.5, 0.1]))
     solver = family(kind)(FixedPointIteration(matrix="kinetic"))
     form = solver.formulation
-    ctx = solver._context(term, 0.0, 0.25, y0, None)
+    ctx = solver.step_context(term, 0.0, 0.25, y0, None)
     dim = 2
     if isinstance(solver.basis, dvi.ShallowNetBasis):
         hidden = form.hidden.parameters(solver.basis, dim, jnp.float64)

@@ -27,6 +27,7 @@ from diffrax_vi.oga import (  # noqa: E402
     ridged_lstsq,
 )
 from diffrax_vi.quadrature import Simpson  # noqa: E402
+from tests.helpers import oga_fixture, sqrt_eps  # noqa: E402
 
 RELU3 = relu_k(3)
 
@@ -43,18 +44,7 @@ PIN_C = [-0.49460912014278396, 0.5665083163888716, 1.4395563049941698, -3.555896
 PIN_RESIDUAL = 0.0029557412009774313
 
 
-def sqrt_eps(dtype):
-    return float(np.sqrt(np.finfo(dtype).eps))
-
-
-def fixture(dtype, target=lambda t: np.cos(3 * t)):
-    """Nodes k/10, Simpson weights and a target, computed in float64 and cast once."""
-    t, w = Simpson(10).nodes_weights_np()
-    return (
-        jnp.asarray(t, dtype),
-        jnp.asarray(w, dtype),
-        jnp.asarray(target(t), dtype),
-    )
+fixture = oga_fixture
 
 
 def weighted_error(result, activation, target):
@@ -79,7 +69,7 @@ def atom_values(activation, W, b, dtype=np.float64):
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_reference_pin(dtype):
     nodes, weights, y = fixture(dtype)
-    res = oga_fit(OGA1d(), RELU3, nodes, weights, y, 4)
+    res = oga_fit(OGA1d(), RELU3, nodes, weights, y, 4, dict_amount=400)
     tol = sqrt_eps(dtype)
     assert np.asarray(res.atoms).tolist() == PIN_ATOMS
     assert int(res.placed) == 4
@@ -100,7 +90,8 @@ def test_reference_pin(dtype):
 
 def test_float32_stays_float32_end_to_end():
     nodes, weights, y = fixture(np.float32)
-    jaxpr = jax.make_jaxpr(lambda y: oga_fit(OGA1d(), RELU3, nodes, weights, y, 4))(y)
+    jaxpr = jax.make_jaxpr(
+        lambda y: oga_fit(OGA1d(), RELU3, nodes, weights, y, 4, dict_amount=400))(y)
     text = str(jaxpr)
     assert "f32" in text
     assert "f64" not in text
@@ -118,7 +109,7 @@ def test_normalized_first_atom_is_one_step_optimal():
     res2 = np.where(nrm2 > 0, yy @ yy - (yy @ a) ** 2 / np.where(nrm2 > 0, nrm2, 1), np.inf)
     best = int(np.argmin(res2))
     assert best == 259
-    res = oga_fit(OGA1dNormalized(), RELU3, nodes, weights, y, 4)
+    res = oga_fit(OGA1dNormalized(), RELU3, nodes, weights, y, 4, dict_amount=400)
     assert int(res.atoms[0]) == best
     # oga_spec §4.9: the normalised quartet [260, 599, 212, 540] (1-based), residual 9.80e-2.
     assert np.asarray(res.atoms).tolist() == [259, 598, 211, 539]
@@ -135,7 +126,7 @@ def test_jit_and_vmap_match_eager():
     targets = np.stack([np.cos(3 * t), np.exp(2 * t) / 4, np.sin(5 * t + 1), np.zeros_like(t)])
 
     def fit(y):
-        return oga_fit(OGA1d(), RELU3, nodes, weights, y, 4)
+        return oga_fit(OGA1d(), RELU3, nodes, weights, y, 4, dict_amount=400)
 
     eager = [fit(jnp.asarray(y)) for y in targets]
     batched = jax.jit(jax.vmap(fit))(jnp.asarray(targets))
@@ -160,7 +151,7 @@ def test_jit_and_vmap_match_eager():
 
 def test_float16_is_finite_and_float16():
     nodes, weights, y = fixture(np.float16)
-    res = oga_fit(OGA1d(), RELU3, nodes, weights, y, 4)
+    res = oga_fit(OGA1d(), RELU3, nodes, weights, y, 4, dict_amount=400)
     for name in ("W", "b", "c", "residual", "gains"):
         value = getattr(res, name)
         assert value.dtype == np.float16, name
@@ -178,7 +169,7 @@ def test_float16_relu4_fill_avoids_selected_atoms():
     # and the fill falls back to usable atoms that were not selected.
     nodes, weights, y = fixture(np.float16)
     relu4 = relu_k(4)
-    res = oga_fit(OGA1d(), relu4, nodes, weights, y, 4)
+    res = oga_fit(OGA1d(), relu4, nodes, weights, y, 4, dict_amount=400)
     for name in ("W", "b", "c", "residual", "gains"):
         value = getattr(res, name)
         assert value.dtype == np.float16, name
@@ -195,10 +186,10 @@ def test_promoting_activation_is_refused():
         return jnp.maximum(x, 0.0) ** 3 * jnp.float64(1)
 
     with pytest.raises(ValueError, match="promotes"):
-        oga_fit(OGA1d(), promoting, nodes, weights, y, 4)
+        oga_fit(OGA1d(), promoting, nodes, weights, y, 4, dict_amount=400)
     nodes16, weights16, y16 = fixture(np.float16)
     with pytest.raises(ValueError, match="promotes"):
-        oga_fit(OGA1d(), promoting, nodes16, weights16, y16, 4)
+        oga_fit(OGA1d(), promoting, nodes16, weights16, y16, 4, dict_amount=400)
 
 
 # --------------------------------------------------------------------------------------------
@@ -221,7 +212,7 @@ def check_placeholders(res, activation, first, dtype=np.float64):
 
 def test_fill_unused_for_zero_target():
     nodes, weights, _ = fixture(np.float64)
-    res = oga_fit(OGA1d(), RELU3, nodes, weights, jnp.zeros_like(nodes), 4)
+    res = oga_fit(OGA1d(), RELU3, nodes, weights, jnp.zeros_like(nodes), 4, dict_amount=400)
     assert int(res.placed) == 0
     assert np.asarray(res.atoms).tolist() == [-1, -1, -1, -1]
     assert float(res.residual) == 0.0
@@ -235,7 +226,7 @@ def test_fill_unused_for_single_atom_target():
     w0, b0 = table[600]
     nodes, weights, _ = fixture(np.float64)
     y = RELU3(w0 * nodes + b0)
-    res = oga_fit(OGA1dNormalized(), RELU3, nodes, weights, y, 4)
+    res = oga_fit(OGA1dNormalized(), RELU3, nodes, weights, y, 4, dict_amount=400)
     assert int(res.placed) == 1
     assert np.asarray(res.atoms).tolist() == [600, -1, -1, -1]
     assert float(res.c[0]) == pytest.approx(1.0, rel=1e-12)
@@ -251,7 +242,8 @@ def test_modulation_multiplies_every_atom():
     nodes, weights, _ = fixture(np.float64)
     modulation = nodes * (1 - nodes)
     y = modulation * RELU3(w0 * nodes + b0)
-    res = oga_fit(OGA1dNormalized(), RELU3, nodes, weights, y, 4, modulation=modulation)
+    res = oga_fit(OGA1dNormalized(), RELU3, nodes, weights, y, 4, modulation=modulation,
+                  dict_amount=400)
     assert int(res.placed) == 1
     assert int(res.atoms[0]) == 600
     assert float(res.c[0]) == pytest.approx(1.0, rel=1e-12)
@@ -262,7 +254,7 @@ def test_modulation_multiplies_every_atom():
 def test_tanh_smooth_target_fit(dtype, bound):
     # Measured: 6.1e-9 (float64) and 1.3e-5 (float32) for cos(3t), width 10, dict 400.
     nodes, weights, y = fixture(dtype)
-    res = oga_fit(OGA1d(), tanh, nodes, weights, y, 10)
+    res = oga_fit(OGA1d(), tanh, nodes, weights, y, 10, dict_amount=400)
     assert int(res.placed) == 10
     assert float(res.residual) < bound
     assert weighted_error(res, tanh, lambda t: np.cos(3 * t)) < 2 * bound
@@ -278,33 +270,33 @@ def test_input_validation():
     nodes, weights, y = fixture(np.float64)
     fit = OGA1d()
     with pytest.raises(ValueError, match="length"):
-        oga_fit(fit, RELU3, nodes, weights[:-1], y, 4)
+        oga_fit(fit, RELU3, nodes, weights[:-1], y, 4, dict_amount=400)
     with pytest.raises(ValueError, match="length"):
-        oga_fit(fit, RELU3, nodes, weights, y, 4, modulation=nodes[:-2])
+        oga_fit(fit, RELU3, nodes, weights, y, 4, modulation=nodes[:-2], dict_amount=400)
     with pytest.raises(ValueError, match="one-dimensional"):
-        oga_fit(fit, RELU3, nodes, weights, y[None, :], 4)
+        oga_fit(fit, RELU3, nodes, weights, y[None, :], 4, dict_amount=400)
     with pytest.raises(ValueError, match="width"):
-        oga_fit(fit, RELU3, nodes, weights, y, 0)
+        oga_fit(fit, RELU3, nodes, weights, y, 0, dict_amount=400)
     with pytest.raises(ValueError, match="width"):
-        oga_fit(fit, RELU3, nodes, weights, y, 2.0)
+        oga_fit(fit, RELU3, nodes, weights, y, 2.0, dict_amount=400)
     with pytest.raises(ValueError, match="dict_amount"):
         oga_fit(fit, RELU3, nodes, weights, y, 4, dict_amount=0)
     with pytest.raises(ValueError, match="bias_interval"):
-        oga_fit(fit, RELU3, nodes, weights, y, 4, bias_interval=(1.0, 1.0))
+        oga_fit(fit, RELU3, nodes, weights, y, 4, bias_interval=(1.0, 1.0), dict_amount=400)
     with pytest.raises(ValueError, match="bias_interval"):
-        oga_fit(fit, RELU3, nodes, weights, y, 4, bias_interval=(2.0, -2.0))
+        oga_fit(fit, RELU3, nodes, weights, y, 4, bias_interval=(2.0, -2.0), dict_amount=400)
     with pytest.raises(ValueError, match="bias_interval"):
-        oga_fit(fit, RELU3, nodes, weights, y, 4, bias_interval=(0.0, math.inf))
+        oga_fit(fit, RELU3, nodes, weights, y, 4, bias_interval=(0.0, math.inf), dict_amount=400)
     with pytest.raises(ValueError, match="dtype"):
-        oga_fit(fit, RELU3, nodes, weights.astype(jnp.float32), y, 4)
+        oga_fit(fit, RELU3, nodes, weights.astype(jnp.float32), y, 4, dict_amount=400)
     with pytest.raises(ValueError, match="dtype"):
-        oga_fit(fit, RELU3, nodes, weights, y.astype(jnp.float32), 4)
+        oga_fit(fit, RELU3, nodes, weights, y.astype(jnp.float32), 4, dict_amount=400)
     with pytest.raises(ValueError, match="floating"):
-        oga_fit(fit, RELU3, jnp.arange(11), weights, y, 4)
+        oga_fit(fit, RELU3, jnp.arange(11), weights, y, 4, dict_amount=400)
     with pytest.raises(ValueError, match="positive"):
-        oga_fit(fit, RELU3, nodes, weights.at[3].set(0.0), y, 4)
+        oga_fit(fit, RELU3, nodes, weights.at[3].set(0.0), y, 4, dict_amount=400)
     with pytest.raises(ValueError, match="OGA configuration"):
-        oga_fit(RawProjection(), RELU3, nodes, weights, y, 4)
+        oga_fit(RawProjection(), RELU3, nodes, weights, y, 4, dict_amount=400)
     with pytest.raises(ValueError, match="selection"):
         OGA(BiasGrid1d(), WeightedQR(), WeightedQR())
     with pytest.raises(ValueError, match="bool"):

@@ -44,6 +44,7 @@ from diffrax_vi.oga import (  # noqa: E402
     weight_grid,
 )
 from diffrax_vi.quadrature import Simpson  # noqa: E402
+from tests.helpers import oga_fixture, sqrt_eps  # noqa: E402
 
 RELU3 = relu_k(3)
 DTYPES = [np.float16, np.float32, np.float64]
@@ -69,13 +70,7 @@ jacobi_svd = jax.jit(jacobi_svd)
 lu_solve = jax.jit(lu_solve)
 
 
-def sqrt_eps(dtype):
-    return float(np.sqrt(np.finfo(dtype).eps))
-
-
-def fixture(dtype, target=lambda t: np.cos(3 * t)):
-    t, w = Simpson(10).nodes_weights_np()
-    return jnp.asarray(t, dtype), jnp.asarray(w, dtype), jnp.asarray(target(t), dtype)
+fixture = oga_fixture
 
 
 def _guarded_all(a, y, ncols):
@@ -209,13 +204,13 @@ def test_fit_options_and_labels():
 def test_island_needs_x64():
     fit = OGA(BiasGrid1d(), RawProjection(), NormalEquationsFit(island=True))
     nodes, weights, y = fixture(np.float32)
-    res = oga_fit(fit, RELU3, nodes, weights, y, 4)
+    res = oga_fit(fit, RELU3, nodes, weights, y, 4, dict_amount=400)
     assert res.c.dtype == np.float32
     assert np.all(np.isfinite(np.asarray(res.c)))
     jax.config.update("jax_enable_x64", False)
     try:
         with pytest.raises(ValueError, match="x64"):
-            oga_fit(fit, RELU3, nodes, weights, y, 3)
+            oga_fit(fit, RELU3, nodes, weights, y, 3, dict_amount=400)
     finally:
         jax.config.update("jax_enable_x64", True)
 
@@ -267,10 +262,10 @@ def test_orthogonal_first_atom_is_one_step_optimal():
     nodes, weights, y = fixture(np.float64)
     pairs = ((NormalizedProjection(), WeightedQR()), (OrthogonalProjection(), IncrementalQR()))
     for sel, fit in pairs:
-        res = oga_fit(OGA(BiasGrid1d(), sel, fit), RELU3, nodes, weights, y, 1)
+        res = oga_fit(OGA(BiasGrid1d(), sel, fit), RELU3, nodes, weights, y, 1, dict_amount=400)
         assert int(res.atoms[0]) == best
         assert float(res.residual) == pytest.approx(residual, rel=1e-10)
-    raw = oga_fit(OGA1d(), RELU3, nodes, weights, y, 1)
+    raw = oga_fit(OGA1d(), RELU3, nodes, weights, y, 1, dict_amount=400)
     assert float(raw.residual) > residual * (1 + 1e-6)
 
 
@@ -427,7 +422,7 @@ def test_mirror_pairs(dtype, symmetry):
 @SLOW
 def test_mirror_pairs_fit_better_than_shared_and_mirror_map():
     nodes, weights, y = fixture(np.float64)
-    free = oga_fit(OGA1d(), RELU3, nodes, weights, y, 4, symmetry=MirrorPairs())
+    free = oga_fit(OGA1d(), RELU3, nodes, weights, y, 4, symmetry=MirrorPairs(), dict_amount=400)
     assert int(free.placed) == 4
     assert float(free.residual) < 0.05
     w, b = mirror(jnp.asarray(1.5), jnp.asarray(-0.25))
@@ -435,7 +430,8 @@ def test_mirror_pairs_fit_better_than_shared_and_mirror_map():
     # A target symmetric about t = 1/2 is fitted by shared pairs at least as well as it fits
     # an asymmetric one (the shared network is symmetric pairwise).
     sym = jnp.cos(2 * jnp.pi * nodes)
-    shared = oga_fit(OGA1d(), RELU3, nodes, weights, sym, 4, symmetry=SharedMirrorPairs())
+    shared = oga_fit(OGA1d(), RELU3, nodes, weights, sym, 4, symmetry=SharedMirrorPairs(),
+                     dict_amount=400)
     c = np.asarray(shared.c)
     assert c[0] == c[1] and c[2] == c[3]
     u = np.asarray(RELU3(jnp.outer(nodes, shared.W) + shared.b)) @ c
@@ -446,20 +442,21 @@ def test_mirror_pairs_fit_better_than_shared_and_mirror_map():
 def test_mirror_odd_width_refused(symmetry):
     nodes, weights, y = fixture(np.float64)
     with pytest.raises(ValueError, match="multiple of 2"):
-        oga_fit(OGA1d(), RELU3, nodes, weights, y, 5, symmetry=symmetry)
+        oga_fit(OGA1d(), RELU3, nodes, weights, y, 5, symmetry=symmetry, dict_amount=400)
     NoSymmetry().check_width(5)  # fine without a mirror
 
 
 @SLOW
 def test_odd_width_without_symmetry():
     nodes, weights, y = fixture(np.float64)
-    res = oga_fit(OGA1d(), RELU3, nodes, weights, y, 5, symmetry=NoSymmetry())
+    res = oga_fit(OGA1d(), RELU3, nodes, weights, y, 5, symmetry=NoSymmetry(), dict_amount=400)
     assert res.W.shape == (5,)
 
 
 def test_mirror_fill_places_pairs():
     nodes, weights, _ = fixture(np.float64)
-    res = oga_fit(OGA1d(), RELU3, nodes, weights, jnp.zeros_like(nodes), 6, symmetry=MirrorPairs())
+    res = oga_fit(OGA1d(), RELU3, nodes, weights, jnp.zeros_like(nodes), 6, symmetry=MirrorPairs(),
+                  dict_amount=400)
     W, b = np.asarray(res.W), np.asarray(res.b)
     assert int(res.placed) == 0
     np.testing.assert_array_equal(W[1::2], -W[0::2])
@@ -626,7 +623,7 @@ PIN_RESIDUAL = 0.0029557412009774313
 @slow_unless(np.float64)
 def test_reference_baseline(dtype):
     nodes, weights, y = fixture(dtype)
-    res = oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 4)
+    res = oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 4, dict_amount=400)
     for name in ("W", "b", "c", "residual"):
         assert getattr(res, name).dtype == dtype
     atoms = np.asarray(res.atoms).tolist()
@@ -648,15 +645,17 @@ def test_reference_baseline_validation():
     assert jax.tree_util.tree_leaves(OGA1dNormalEquations()) == []
     nodes, weights, y = fixture(np.float64)
     with pytest.raises(ValueError, match="symmetry"):
-        oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 4, symmetry=MirrorPairs())
+        oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 4, symmetry=MirrorPairs(),
+                dict_amount=400)
     with pytest.raises(ValueError, match="modulation"):
-        oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 4, modulation=nodes)
+        oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 4, modulation=nodes,
+                dict_amount=400)
     with pytest.raises(ValueError, match="width"):
-        oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 0)
+        oga_fit(OGA1dNormalEquations(), RELU3, nodes, weights, y, 0, dict_amount=400)
     jax.config.update("jax_enable_x64", False)
     try:
         n32, w32, y32 = fixture(np.float32)
         with pytest.raises(ValueError, match="x64"):
-            oga_fit(OGA1dNormalEquations(), RELU3, n32, w32, y32, 3)
+            oga_fit(OGA1dNormalEquations(), RELU3, n32, w32, y32, 3, dict_amount=400)
     finally:
         jax.config.update("jax_enable_x64", True)

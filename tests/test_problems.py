@@ -12,13 +12,13 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from diffrax_vi.problems import (  # noqa: E402
-    Problem,
     coupled_oscillators,
     double_pendulum,
     harmonic_oscillator,
     pendulum,
 )
 from diffrax_vi.terms import IODETerm, LagrangianTerm  # noqa: E402
+from tests.helpers import solve_adaptive  # noqa: E402
 
 FACTORIES = [harmonic_oscillator, pendulum, double_pendulum, coupled_oscillators]
 H0 = {
@@ -44,23 +44,7 @@ CROSS_CHECKS = {
 }
 
 
-def _solve(problem: Problem, solver, rtol, atol, ts=None):
-    # Stepping onto the save times keeps the (lower-order) dense output out of the comparison.
-    ts = jnp.asarray(problem.ts if ts is None else ts, dtype=problem.dtype)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol)
-    sol = diffrax.diffeqsolve(
-        problem.term,
-        solver,
-        t0=problem.t0,
-        t1=problem.t1,
-        dt0=problem.dt,
-        y0=problem.y0,
-        args=problem.args,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.ClipStepSizeController(controller, step_ts=ts),
-        max_steps=100_000,
-    )
-    return sol.ys
+_solve = solve_adaptive
 
 
 # -- initial data and energies ---------------------------------------------------------------

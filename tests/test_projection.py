@@ -10,6 +10,7 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.formulation import StepContext
+from tests.helpers import max_relative_error, solve_problem
 
 
 def projected(activation, width, nodes, **kwargs):
@@ -20,21 +21,7 @@ def projected(activation, width, nodes, **kwargs):
     )
 
 
-def solve(problem, solver, y0=None, **kwargs):
-    ts = jnp.asarray(problem.ts)
-    run = eqx.filter_jit(
-        lambda y: diffrax.diffeqsolve(
-            problem.term, solver, problem.t0, problem.t1, problem.dt, y, args=problem.args,
-            saveat=diffrax.SaveAt(ts=ts, solver_state=True), **kwargs,
-        )
-    )
-    return run(problem.y0 if y0 is None else y0)
-
-
-def max_relative_error(problem, sol):
-    q_ref, _ = problem.reference(np.asarray(sol.ts))
-    q = np.asarray(sol.ys[0], dtype=np.float64)
-    return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
+solve = solve_problem
 
 
 def residual_scale(y0):
@@ -120,7 +107,7 @@ def test_dense_output_inside_a_step():
 
 def _context(problem, solver, theta_like_width=10):
     q0, p0 = problem.y0
-    ctx = solver._context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+    ctx = solver.step_context(problem.term, 0.0, 0.1, problem.y0, problem.args)
     key = jax.random.PRNGKey(0)
     theta = jax.random.normal(key, (3 * theta_like_width, q0.shape[0]), dtype=q0.dtype)
     return ctx, theta
@@ -189,7 +176,7 @@ def test_uniform_layer_features_hold_the_constant():
     problem = problems.double_pendulum()
     for activation, width in ((dvi.tanh, 10), (dvi.sigmoid, 10), (dvi.gelu, 8)):
         solver = dvi.NetworkVI(dvi.ShallowNetBasis(activation, width), dvi.GaussLegendre(8))
-        ctx = solver._context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+        ctx = solver.step_context(problem.term, 0.0, 0.1, problem.y0, problem.args)
         theta = dvi.UniformLayer().parameters(solver.basis, 2, jnp.float64)
         span = solver.formulation.span(theta, ctx)
         one = jnp.zeros_like(span.g0.T).at[0].set(1.0)
@@ -321,7 +308,7 @@ def test_refusals():
     with pytest.raises(ValueError, match="ShallowNetBasis without mirrored pairs"):
         dvi.NetworkVI(
             dvi.DenseNetBasis(dvi.tanh, 4, 4), formulation=dvi.VariableProjection(),
-            initial_guess=dvi.LSGD(),
+            seed=dvi.SeedPolicy(initial_guess=dvi.LSGD()),
         )
     with pytest.raises(ValueError, match="ShallowNetBasis without mirrored pairs"):
         dvi.NetworkVI(
@@ -335,7 +322,7 @@ def test_refusals():
     with pytest.raises(ValueError, match="no hidden layer"):
         dvi.NetworkVI(
             dvi.LagrangeBasis(3), formulation=dvi.VariableProjection(hidden=dvi.SeedLayer()),
-            initial_guess=dvi.LeastSquaresFit(),
+            seed=dvi.SeedPolicy(initial_guess=dvi.LeastSquaresFit()),
         )
     with pytest.raises(ValueError, match="RoundoffNewton"):
         dvi.NetworkVI(
@@ -361,14 +348,18 @@ def test_default_root_finder_follows_the_formulation():
     "basis, options",
     [
         (dvi.ShallowNetBasis(dvi.tanh, 10), dict(root_finder=dvi.LevenbergMarquardt())),
-        (dvi.ShallowNetBasis(dvi.tanh, 10), dict(reuse_neurons=True)),
-        (dvi.ShallowNetBasis(dvi.tanh, 10), dict(initial_trajectory=dvi.PreviousStep())),
-        (dvi.ShallowNetBasis(dvi.tanh, 10), dict(initial_guess=dvi.OGA2d())),
-        (dvi.ShallowNetBasis(dvi.tanh, 10), dict(dict_amount=400)),
+        (dvi.ShallowNetBasis(dvi.tanh, 10), dict(seed=dvi.SeedPolicy(reuse_neurons=True))),
+        (dvi.ShallowNetBasis(dvi.tanh, 10), dict(seed=dvi.SeedPolicy(dvi.PreviousStep()))),
+        (dvi.ShallowNetBasis(dvi.tanh, 10),
+         dict(seed=dvi.SeedPolicy(initial_guess=dvi.OGA2d()))),
+        (dvi.ShallowNetBasis(dvi.tanh, 10),
+         dict(seed=dvi.SeedPolicy(initial_guess=dvi.OGA1d(dict_amount=400)))),
+        (dvi.ShallowNetBasis(dvi.tanh, 10),
+         dict(seed=dvi.SeedPolicy(initial_guess=dvi.OGA1d(bias_interval=(-2, 2))))),
         (dvi.ShallowNetBasis(dvi.sin, 10), {}),  # equal |w|: two features span everything
         (dvi.ShallowNetBasis(dvi.relu_k(1), 10), {}),
         (dvi.ShallowNetBasis(dvi.tanh, 4, symmetry=dvi.MirrorPairs()), {}),
-        (dvi.DenseNetBasis(dvi.tanh, 4, 4), dict(initial_guess=dvi.LSGD())),
+        (dvi.DenseNetBasis(dvi.tanh, 4, 4), dict(seed=dvi.SeedPolicy(initial_guess=dvi.LSGD()))),
     ],
 )
 def test_default_formulation_is_all_parameter_where_the_projection_does_not_apply(
@@ -384,16 +375,20 @@ def test_default_formulation_is_the_projection_for_the_activations_it_suits(acti
     assert solver.formulation == dvi.VariableProjection()
     # the projected step restarts from the initial trajectory: choosing one keeps it
     trajectory = dvi.IntegratorExtrapolation(substeps=20)
-    solver = dvi.NetworkVI(dvi.ShallowNetBasis(activation, 8), initial_trajectory=trajectory)
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(activation, 8),
+                           seed=dvi.SeedPolicy(initial_trajectory=trajectory))
     assert solver.formulation == dvi.VariableProjection()
 
 
 def test_the_fixed_layer_refuses_seed_options_it_would_ignore():
     basis = dvi.ShallowNetBasis(dvi.tanh, 10)
     with pytest.raises(ValueError, match="initial_guess would have no effect"):
-        dvi.NetworkVI(basis, formulation=dvi.VariableProjection(), initial_guess=dvi.OGA2d())
+        dvi.NetworkVI(basis, formulation=dvi.VariableProjection(),
+                      seed=dvi.SeedPolicy(initial_guess=dvi.OGA2d()))
     seeded = dvi.VariableProjection(hidden=dvi.SeedLayer())
-    assert dvi.NetworkVI(basis, formulation=seeded, dict_amount=400).dict_amount == 400
+    solver = dvi.NetworkVI(basis, formulation=seeded,
+                           seed=dvi.SeedPolicy(initial_guess=dvi.OGA1d(dict_amount=400)))
+    assert solver.seed.initial_guess.dict_amount == 400
 
 
 def test_first_seed_layer_is_one_compiled_path_for_vmap_and_loop():
@@ -457,10 +452,12 @@ def test_roundoff_newton_without_tolerance_runs_to_the_floor():
 def test_projection_refuses_the_all_parameter_seed_options():
     basis = dvi.ShallowNetBasis(dvi.tanh, 10)
     with pytest.raises(ValueError, match="all-parameter"):
-        dvi.NetworkVI(basis, formulation=dvi.VariableProjection(), reuse_neurons=True)
+        dvi.NetworkVI(basis, formulation=dvi.VariableProjection(),
+                      seed=dvi.SeedPolicy(reuse_neurons=True))
     with pytest.raises(ValueError, match="all-parameter"):
         dvi.NetworkVI(
-            basis, formulation=dvi.VariableProjection(), initial_trajectory=dvi.PreviousStep()
+            basis, formulation=dvi.VariableProjection(),
+            seed=dvi.SeedPolicy(initial_trajectory=dvi.PreviousStep()),
         )
 
 

@@ -43,7 +43,7 @@ def test_every_preset_converges_on_the_harmonic_oscillator(preset):
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(activation, width),
         dvi.GaussLegendre(8),
-        initial_guess=getattr(dvi, preset)(),
+        seed=dvi.SeedPolicy(initial_guess=getattr(dvi, preset)()),
     )
     ts = jnp.asarray(problem.ts)
     sol = eqx.filter_jit(
@@ -66,8 +66,7 @@ def test_reference_grid_dictionary_stalls_the_solve():
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(dvi.gelu, 10),
         dvi.GaussLegendre(8),
-        initial_guess=OGA2d(dvi.WeightBiasGrid2d()),
-        dict_amount=400,
+        seed=dvi.SeedPolicy(initial_guess=OGA2d(dvi.WeightBiasGrid2d(), dict_amount=400)),
     )
     sol = diffrax.diffeqsolve(
         problem.term, solver, problem.t0, problem.t1, problem.dt, problem.y0, throw=False

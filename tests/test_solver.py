@@ -1,5 +1,7 @@
 """NetworkVI end to end in diffrax.diffeqsolve: accuracy fixtures, precision, failures, output."""
 
+from functools import partial
+
 import diffrax
 import equinox as eqx
 import jax
@@ -9,33 +11,11 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
+from tests.helpers import all_parameter_network as all_parameter
+from tests.helpers import max_relative_error, solve_problem
+from tests.helpers import shallow_network as shallow
 
-
-def solve(problem, solver, *, dtype=jnp.float64, saveat=None, **kwargs):
-    ts = jnp.asarray(problem.ts, dtype)
-    saveat = saveat or diffrax.SaveAt(ts=ts, solver_state=True)
-    run = eqx.filter_jit(
-        lambda y0: diffrax.diffeqsolve(
-            problem.term,
-            solver,
-            dtype(problem.t0),
-            dtype(problem.t1),
-            dtype(problem.dt),
-            y0,
-            args=problem.args,
-            saveat=saveat,
-            **kwargs,
-        )
-    )
-    return run(problem.y0)
-
-
-def max_relative_error(problem, sol):
-    """Max over saved times of max|q − q_ref| / max|q_ref| (per time)."""
-    ts = np.asarray(sol.ts)
-    q_ref, _ = problem.reference(ts)
-    q = np.asarray(sol.ys[0], dtype=np.float64)
-    return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
+solve = partial(solve_problem, dtype=jnp.float64)
 
 
 # Tests built on a real failing step: whether the step fails is decided by rounding, and on
@@ -44,15 +24,6 @@ CPU_ROUNDING_CASE = pytest.mark.skipif(
     jax.default_backend() != "cpu",
     reason="the failing step is a CPU-rounding case (on an H200 the same step converges)",
 )
-
-
-def shallow(activation, width, nodes, **kwargs):
-    return dvi.NetworkVI(dvi.ShallowNetBasis(activation, width), dvi.GaussLegendre(nodes), **kwargs)
-
-
-def all_parameter(activation, width, nodes, **kwargs):
-    """The reference's formulation: every network parameter an unknown (LM root finder)."""
-    return shallow(activation, width, nodes, formulation=dvi.FreeEndpoints(), **kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -279,8 +250,8 @@ def test_reference_method_names():
     assert isinstance(solver.root_finder, dvi.RegularisedNewton)
     assert solver.root_finder.lam == 1e-5
     assert solver.root_find_max_steps == 77
-    assert solver.dict_amount == 400
-    assert solver.initial_trajectory.substeps == 12
+    assert solver.seed.initial_guess.dict_amount == 400
+    assert solver.seed.initial_trajectory.substeps == 12
     with pytest.raises(TypeError, match="unknown option"):
         dvi.ShallowNet(basis, dvi.GaussLegendre(8), show_satus=True)
 
@@ -659,7 +630,7 @@ def test_fallback_fit_builds_no_dictionary_in_the_program(monkeypatch):
     constant of the program rather than rebuilt in it on every fallback (measured: double
     pendulum fast configuration, XLA compile 8.6 -> 7.9 s)."""
     from diffrax_vi.oga import greedy
-    from diffrax_vi.seeding.fit import fit_problem, with_constant_grid
+    from diffrax_vi.parameter_seed import fit_problem, with_constant_grid
 
     def refuse(*args, **kwargs):
         raise AssertionError("the OGA dictionary was built from a traced grid")

@@ -117,7 +117,7 @@ def there_and_back(solver, problem, n, energy=False):
     return distance, float(np.max(np.abs(e - e0)) / abs(e0))
 
 
-@pytest.mark.long  # ~45 s under load; one-step reversibility is also in tests/test_families.py
+@pytest.mark.long  # ~45 s under load; one-step reversibility is also in tests/test_methods.py
 def test_time_symmetry_reversible_harmonic_oscillator():
     """Also the short version of the energy study: 100 steps of h = 0.1 with bounded energy."""
     problem = problems.harmonic_oscillator(t1=10.0)

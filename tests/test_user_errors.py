@@ -2,6 +2,8 @@
 message that says what is expected and what was given; failure reports say what happened;
 the state can be built from positions and velocities."""
 
+from functools import partial
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -12,6 +14,7 @@ import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.results import FAILURE_KINDS, STEP_FAILURES
 from diffrax_vi.validation import check_state, check_times
+from tests.helpers import motionless_cgvi
 
 HO = problems.harmonic_oscillator()
 TERM = HO.term
@@ -22,11 +25,7 @@ Q, P = jnp.array([0.5]), jnp.array([0.0])
 F32_TIMES = (jnp.float32(0.0), jnp.float32(0.2), jnp.float32(0.1))
 
 
-def cgvi(**kwargs):
-    """A classical cGVI with a motionless seed: the same solver paths, cheap to compile."""
-    kwargs.setdefault("initial_guess", dvi.LeastSquaresFit())
-    kwargs.setdefault("initial_trajectory", dvi.NoExtrapolation(4))
-    return dvi.NetworkVI(dvi.LagrangeBasis(2), dvi.GaussLegendre(3), **kwargs)
+cgvi = partial(motionless_cgvi, 2, 3)
 
 
 def assert_names_the_form(error: pytest.ExceptionInfo, given: str) -> None:

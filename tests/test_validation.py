@@ -1,5 +1,7 @@
 """Wrong input is refused early, with a message that names the problem."""
 
+from functools import partial
+
 import diffrax
 import jax.numpy as jnp
 import numpy as np
@@ -7,16 +9,14 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
+from tests.helpers import motionless_cgvi
 
 HO = problems.harmonic_oscillator()
 # Python-float times would make diffrax promote a float32 y0 to float64.
 F32_TIMES = (jnp.float32(0.0), jnp.float32(0.2), jnp.float32(0.1))
 
 
-def cgvi(**kwargs):
-    kwargs.setdefault("initial_guess", dvi.LeastSquaresFit())
-    kwargs.setdefault("initial_trajectory", dvi.NoExtrapolation(4))
-    return dvi.NetworkVI(dvi.LagrangeBasis(2), dvi.GaussLegendre(3), **kwargs)
+cgvi = partial(motionless_cgvi, 2, 3)
 
 
 def solve(solver=None, term=HO.term, y0=HO.y0, dt0=0.1, t1=0.2, **kwargs):
@@ -164,12 +164,12 @@ def test_activation_that_promotes():
 def test_quadrature_with_too_few_nodes():
     with pytest.raises(ValueError, match="at least 2 nodes"):
         dvi.NetworkVI(dvi.LagrangeBasis(2), dvi.GaussLegendre(1),
-                      initial_guess=dvi.LeastSquaresFit())  # fmt: skip
+                      seed=dvi.SeedPolicy(initial_guess=dvi.LeastSquaresFit()))  # fmt: skip
     with pytest.raises(ValueError, match="nodes"):
         dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(4))
     with pytest.raises(ValueError, match="at least 3 nodes"):
         dvi.NetworkVI(dvi.DenseNetBasis(dvi.tanh, 4, 6), dvi.GaussLegendre(2),
-                      initial_guess=dvi.LSGD())  # fmt: skip
+                      seed=dvi.SeedPolicy(initial_guess=dvi.LSGD()))  # fmt: skip
     # The reference's settings pass.
     dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8))
 
@@ -201,14 +201,24 @@ def test_bad_option_values():
     basis = dvi.ShallowNetBasis(dvi.tanh, 4)
     for kwargs, match in [
         (dict(root_find_max_steps=0), "root_find_max_steps"),
-        (dict(dict_amount=0), "dict_amount"),
-        (dict(bias_interval=(1.0, -1.0)), "bias_interval"),
+        (dict(seed=dvi.OGA1d()), "seed must be a SeedPolicy"),
+        (dict(initial_guess=dvi.OGA1d()), "initial_guess"),
         (dict(error_estimate=0), "error_estimate"),
         (dict(iteration_log=-1), "iteration_log"),
         (dict(quadrature="gauss"), "quadrature"),
     ]:
         with pytest.raises((TypeError, ValueError), match=match):
             dvi.NetworkVI(basis, **kwargs)
+    # the OGA's dictionary options are the OGA's
+    for kwargs, match in [
+        (dict(dict_amount=0), "dict_amount"),
+        (dict(dict_amount=2.5), "dict_amount"),
+        (dict(bias_interval=(1.0, -1.0)), "bias_interval"),
+        (dict(bias_interval=(0.0, float("inf"))), "bias_interval"),
+        (dict(bias_interval="wide"), "bias_interval"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            dvi.OGA1d(**kwargs)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="positive integer node count"):
             dvi.GaussLegendre(bad)

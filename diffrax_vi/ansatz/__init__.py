@@ -3,14 +3,7 @@
 Ansätze written with sympy (`VISEBasis`, `SymbolicAnsatz`) live in `diffrax_vi.symbolic.ansatz`.
 """
 
-from .base import AbstractBasis
-from .dense import DenseNetBasis
-from .polynomial import LagrangeBasis
-from .shallow import ShallowNetBasis
-
-__all__ = [
-    "AbstractBasis",
-    "DenseNetBasis",
-    "LagrangeBasis",
-    "ShallowNetBasis",
-]
+from .base import AbstractBasis as AbstractBasis
+from .dense import DenseNetBasis as DenseNetBasis
+from .polynomial import LagrangeBasis as LagrangeBasis
+from .shallow import ShallowNetBasis as ShallowNetBasis

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..interpolation import lagrange_weights
+from ..lagrange import lagrange_weights
 from ..quadrature import gauss_lobatto_upper, symmetric_points
 from .base import AbstractBasis
 

@@ -12,8 +12,8 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..activations import activation_name, check_activation
-from ..oga.symmetry import AbstractSymmetry, MirrorPairs, NoSymmetry, SharedMirrorPairs, mirror
 from .base import AbstractBasis
+from .symmetry import AbstractSymmetry, MirrorPairs, NoSymmetry, SharedMirrorPairs, mirror
 
 __all__ = ["ShallowNetBasis", "NetworkJet"]
 
@@ -156,7 +156,7 @@ class ShallowNetBasis(AbstractBasis):
         if self.derivatives not in ("autodiff", "sympy"):
             raise ValueError(f"derivatives must be 'autodiff' or 'sympy', got {self.derivatives!r}")
         if self.derivatives == "sympy":
-            from ..symbolic import sympy_activation  # sympy only when asked for
+            from ..symbolic.codegen import sympy_activation  # sympy only when asked for
 
             sympy_activation(self.activation)  # refuses an activation with no sympy form
         if self.mirrored and self.width % 2:
@@ -214,7 +214,7 @@ class ShallowNetBasis(AbstractBasis):
 
     def evaluate(self, theta, tau):
         if self.derivatives == "sympy":
-            from ..symbolic import symbolic_shallow_evaluate
+            from ..symbolic.codegen import symbolic_shallow_evaluate
 
             return symbolic_shallow_evaluate(self)(theta, tau)
         alpha, w, beta = self.split(theta)

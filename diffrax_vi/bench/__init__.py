@@ -13,46 +13,22 @@
   the energy change rounding adds per step.
 """
 
-from .harness import (
-    Adaptive,
-    Fixed,
-    SciPy,
-    iteration_summary,
-    long_time_energy,
-    read_rows,
-    timed,
-    work_precision,
-    write_rows,
-)
-from .stability import (
-    REFERENCE_RATES,
-    StabilityCase,
-    convergence_rates,
-    full_grid,
-    quick_grid,
-    run_case,
-    stability_sweep,
-)
-from .status import RESULT_STATUS, STATUSES, classify
-
-__all__ = [
-    "Adaptive",
-    "Fixed",
-    "SciPy",
-    "iteration_summary",
-    "long_time_energy",
-    "timed",
-    "read_rows",
-    "work_precision",
-    "write_rows",
-    "REFERENCE_RATES",
-    "StabilityCase",
-    "convergence_rates",
-    "full_grid",
-    "quick_grid",
-    "run_case",
-    "stability_sweep",
-    "RESULT_STATUS",
-    "STATUSES",
-    "classify",
-]
+from .harness import Adaptive as Adaptive
+from .harness import Fixed as Fixed
+from .harness import SciPy as SciPy
+from .harness import iteration_summary as iteration_summary
+from .harness import long_time_energy as long_time_energy
+from .harness import read_rows as read_rows
+from .harness import timed as timed
+from .harness import work_precision as work_precision
+from .harness import write_rows as write_rows
+from .stability import REFERENCE_RATES as REFERENCE_RATES
+from .stability import StabilityCase as StabilityCase
+from .stability import convergence_rates as convergence_rates
+from .stability import full_grid as full_grid
+from .stability import quick_grid as quick_grid
+from .stability import run_case as run_case
+from .stability import stability_sweep as stability_sweep
+from .status import RESULT_STATUS as RESULT_STATUS
+from .status import STATUSES as STATUSES
+from .status import classify as classify

@@ -35,6 +35,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..activations import check_activation, elu, gelu, relu_k, tanh
+from ..ansatz.symmetry import NoSymmetry
 from ..oga import (
     OGA,
     AngularGrid,
@@ -60,7 +61,6 @@ from ..oga import (
 )
 from ..oga.greedy import oga_fit_traced
 from ..oga.reference import oga_reference_fit
-from ..oga.symmetry import NoSymmetry
 from ..quadrature import Simpson
 
 __all__ = [
@@ -164,7 +164,7 @@ class _IndexedActivation(eqx.Module):
 def _fit_batch(config, nodes, weights, ys, indices):
     def one(y, index):
         activation = _IndexedActivation(index)
-        if isinstance(config, OGAReference):
+        if config.reference:
             return oga_reference_fit(
                 activation, nodes, weights, y, WIDTH, BIAS_INTERVAL, DICT_AMOUNT
             )

@@ -41,10 +41,11 @@ from ..ansatz.shallow import ShallowNetBasis
 from ..nonlinear import LevenbergMarquardt, RegularisedNewton
 from ..projection import RoundoffNewton, VariableProjection
 from ..quadrature import GaussLegendre
+from ..seeding.policy import SeedPolicy
 from ..seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
 from ..solver import NetworkVI
-from .harness import relative_error, write_rows
 from .executor import run_sweep
+from .harness import relative_error, write_rows
 from .status import classify, converged
 
 __all__ = [
@@ -53,8 +54,8 @@ __all__ = [
     "full_grid",
     "run_case",
     "stability_sweep",
-    "convergence_rates",
     "StabilitySweep",
+    "convergence_rates",
     "REFERENCE_RATES",
     "SOLVERS",
     "PROJECTED",
@@ -172,7 +173,7 @@ class StabilityCase:
             return NetworkVI(
                 ShallowNetBasis(ACTIVATIONS[self.activation], self.width),
                 GaussLegendre(self.nodes),
-                initial_trajectory=INITIAL_GUESSES[self.initial_guess](),
+                seed=SeedPolicy(initial_trajectory=INITIAL_GUESSES[self.initial_guess]()),
                 formulation=VariableProjection(),
                 root_finder=PROJECTED[self.solver](),
                 root_find_max_steps=self.max_iterations,
@@ -185,7 +186,7 @@ class StabilityCase:
         return NetworkVI(
             ShallowNetBasis(ACTIVATIONS[self.activation], self.width),
             GaussLegendre(self.nodes),
-            initial_trajectory=INITIAL_GUESSES[self.initial_guess](),
+            seed=SeedPolicy(initial_trajectory=INITIAL_GUESSES[self.initial_guess]()),
             root_finder=root_finder,
             root_find_max_steps=self.max_iterations,
         )
@@ -358,7 +359,6 @@ SWEEP_COLUMNS = (
 )
 
 
-def stability_sweep(
 @dataclasses.dataclass(frozen=True)
 class StabilitySweep:
     """The stability cases as a sweep of `diffrax_vi.bench.executor.run_sweep`: a case's id
@@ -378,15 +378,16 @@ class StabilitySweep:
             emit(self.case_id(case), [run_case(case, cache)])
 
 
+def stability_sweep(
     cases: Iterable[StabilityCase],
     *,
     csv_path: str | None = None,
     progress: Any = None,
-) -> list[dict[str, Any]]:
     executor: Any = None,
     log: str | None = None,
     resume: bool = False,
     batch_size: int | None = None,
+) -> list[dict[str, Any]]:
     """Run every case (grouped so that cases sharing a compilation run together), appending
     each row to `csv_path` as soon as it is measured; the CSV is rewritten in case order at
     the end. `progress` is a tqdm-like object.

@@ -18,6 +18,7 @@ from ..methods import CGVI
 from ..nonlinear import LevenbergMarquardt
 from ..projection import VariableProjection
 from ..quadrature import GaussLegendre
+from ..seeding.policy import SeedPolicy
 from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep
 from ..solver import NetworkVI
 from .harness import Adaptive, Entry, Fixed, SciPy
@@ -92,9 +93,10 @@ def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
     label = f"tanh{setting.width} R{setting.nodes}"
     out = [
         Fixed(f"NetworkVI {label} warm",
-              NetworkVI(basis, quad, initial_trajectory=PreviousStep()), family="ours"),
+              NetworkVI(basis, quad, seed=SeedPolicy(initial_trajectory=PreviousStep())),
+              family="ours"),
         Fixed(f"NetworkVI {label} fast",
-              NetworkVI(basis, quad, reuse_neurons=True,
+              NetworkVI(basis, quad, seed=SeedPolicy(reuse_neurons=True),
                         root_finder=LevenbergMarquardt(jacobian="auto", settle=0,
                                                        otol=2.0**-39)),
               family="ours"),
@@ -104,12 +106,13 @@ def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
     if full:
         out += [
             Fixed(f"NetworkVI {label} OGA",
-                  NetworkVI(basis, quad, initial_trajectory=IntegratorExtrapolation(),
+                  NetworkVI(basis, quad,
+                            seed=SeedPolicy(initial_trajectory=IntegratorExtrapolation()),
                             formulation=FreeEndpoints()),
                   family="ours"),
             Fixed(f"NetworkVI gelu{setting.width} R{setting.nodes} warm",
                   NetworkVI(ShallowNetBasis(gelu, setting.width), quad,
-                            initial_trajectory=PreviousStep()), family="ours"),
+                            seed=SeedPolicy(initial_trajectory=PreviousStep())), family="ours"),
         ]
     return out
 
@@ -126,7 +129,8 @@ def energy_entries(setting: Setting) -> list[Fixed]:
     return [
         networkvi_entries(setting, False)[0],
         Fixed(f"NetworkVI {label} long-run",
-              NetworkVI(basis, quad, reuse_neurons=True, refit_residual=2048 * eps,
+              NetworkVI(basis, quad,
+                        seed=SeedPolicy(reuse_neurons=True, refit_residual=2048 * eps),
                         root_finder=LevenbergMarquardt(jacobian="auto")),
               family="ours"),
     ]

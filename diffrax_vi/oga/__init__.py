@@ -4,6 +4,12 @@ The public pieces are the configuration axes (dictionaries, selection rules, fit
 symmetries), the `OGA` record that combines them, the presets, and `oga_fit`.
 """
 
+from ..ansatz.symmetry import AbstractSymmetry as AbstractSymmetry
+from ..ansatz.symmetry import MirrorPairs as MirrorPairs
+from ..ansatz.symmetry import NoSymmetry as NoSymmetry
+from ..ansatz.symmetry import SharedMirrorPairs as SharedMirrorPairs
+from ..ansatz.symmetry import mirror as mirror
+from .base import AbstractOGA as AbstractOGA
 from .config import OGA as OGA
 from .config import OGAReference as OGAReference
 from .dictionaries import AbstractDictionary as AbstractDictionary
@@ -22,11 +28,13 @@ from .fits import WeightedQR as WeightedQR
 from .fits import guarded_solve as guarded_solve
 from .fits import ridged_lstsq as ridged_lstsq
 from .greedy import oga_fit as oga_fit
+from .network_fit import fit_network as fit_network
 from .presets import OGA1d as OGA1d
 from .presets import OGA1dNormalEquations as OGA1dNormalEquations
 from .presets import OGA1dNormalized as OGA1dNormalized
 from .presets import OGA1dStable as OGA1dStable
 from .presets import OGA2d as OGA2d
+from .presets import OGAOptions as OGAOptions
 from .presets import OGASphere as OGASphere
 from .qr import QRState as QRState
 from .qr import jacobi_svd as jacobi_svd
@@ -40,8 +48,3 @@ from .selection import AbstractSelection as AbstractSelection
 from .selection import NormalizedProjection as NormalizedProjection
 from .selection import OrthogonalProjection as OrthogonalProjection
 from .selection import RawProjection as RawProjection
-from .symmetry import AbstractSymmetry as AbstractSymmetry
-from .symmetry import MirrorPairs as MirrorPairs
-from .symmetry import NoSymmetry as NoSymmetry
-from .symmetry import SharedMirrorPairs as SharedMirrorPairs
-from .symmetry import mirror as mirror

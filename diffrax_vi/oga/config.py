@@ -1,9 +1,14 @@
-"""The OGA configuration record: one point in dictionary × selection × fit, plus guard rails."""
+"""The OGA seeds: one point in dictionary × selection × fit with its guard rails and its
+dictionary's range and resolution (`OGA`), and the reference's verbatim seed
+(`OGAReference`). Both are parameter seeds of a `ShallowNetBasis`."""
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 
+from .base import AbstractOGA
 from .dictionaries import AbstractDictionary, BiasGrid1d
 from .fits import AbstractFit, WeightedQR
 from .selection import AbstractSelection, RawProjection
@@ -11,8 +16,9 @@ from .selection import AbstractSelection, RawProjection
 __all__ = ["OGA", "OGAReference"]
 
 
-class OGA(eqx.Module):
-    """Configuration of the orthogonal greedy fit used to seed a shallow network.
+class OGA(AbstractOGA):
+    """The orthogonal greedy fit that seeds a shallow network: a parameter seed
+    (`initial_guess`) and the configuration `oga_fit` runs.
 
     A static, hashable value (all fields are static), so it can sit in a static field of a
     solver or be passed to `oga_fit` under `jax.jit` without becoming a traced argument. Its
@@ -33,6 +39,10 @@ class OGA(eqx.Module):
     - `fill_unused`: when the loop places fewer neurons than requested, give the remaining ones
         distinct usable atoms with zero output weight instead of leaving them at `(0, 0)`.
         Default `True`.
+    - `bias_interval`: the range `(lo, hi)` of the grid dictionaries' biases. Default
+        `(-π, π)`.
+    - `dict_amount`: the dictionary's resolution (the number of bias intervals of
+        `BiasGrid1d`). Default 4000.
     """
 
     dictionary: AbstractDictionary = eqx.field(static=True, default_factory=BiasGrid1d)
@@ -41,6 +51,8 @@ class OGA(eqx.Module):
     coherence: bool = eqx.field(static=True, default=True, kw_only=True)
     norm_guard: bool = eqx.field(static=True, default=True, kw_only=True)
     fill_unused: bool = eqx.field(static=True, default=True, kw_only=True)
+
+    reference: ClassVar[bool] = False
 
     def __check_init__(self):
         for name, base in (
@@ -64,13 +76,18 @@ class OGA(eqx.Module):
         return f"{self.dictionary.label}/{self.selection.label}/{self.fit.label}"
 
 
-class OGAReference(eqx.Module):
+class OGAReference(AbstractOGA):
     """The reference's original seed, kept verbatim as a baseline (see `OGA1dNormalEquations`).
 
     Not a point of the dictionary × selection × fit space: it has none of the guard rails and
     deliberately computes in float64 (needs `jax_enable_x64`). `oga_fit` dispatches on it.
-    Only for `NoSymmetry` and no modulation (the plain network integrator).
+    Only for `NoSymmetry` and no modulation (the plain network integrator). `bias_interval`
+    and `dict_amount` are those of `OGA`.
     """
+
+
+    reference: ClassVar[bool] = True
+
 
     @property
     def label(self) -> str:

@@ -320,3 +320,29 @@ class Refined(AbstractDictionary):
     @property
     def label(self) -> str:
         return f"refined[{self.inner.label}]"
+
+
+def bias_pair(bias_interval) -> tuple[float, float]:
+    """A bias range as a hashable pair of floats (lists and arrays are accepted)."""
+    try:
+        lo, hi = (float(v) for v in bias_interval)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"bias_interval must be a pair of real numbers (lo, hi), got {bias_interval!r}"
+        ) from err
+    return lo, hi
+
+
+def dictionary_range(bias_interval, dict_amount) -> tuple[float, float]:
+    """The bias range as a pair of floats, after refusing one that is not finite and
+    increasing, or a resolution `dict_amount` that is not a positive integer."""
+    if (not isinstance(dict_amount, int | np.integer) or isinstance(dict_amount, bool)
+            or dict_amount < 1):
+        raise ValueError(f"dict_amount must be a positive integer, got {dict_amount!r}")
+    lo, hi = bias_pair(bias_interval)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(
+            f"bias_interval must be finite and increasing (lo < hi), got {bias_interval!r}"
+        )
+    return lo, hi
+

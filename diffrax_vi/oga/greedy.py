@@ -27,7 +27,6 @@ Differences from the reference implementation (NonlinearIntegrators.jl), on purp
 from __future__ import annotations
 
 import collections
-import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -39,14 +38,13 @@ import numpy as np
 from jaxtyping import Array
 
 from ..activations import check_activation
+from ..ansatz.symmetry import AbstractSymmetry, NoSymmetry
 from ..precision import as_dtype, eps, norm2, power_of_two_scale, sqrt_eps
-from .config import OGA, OGAReference
-from .dictionaries import Refined
+from .dictionaries import Refined, dictionary_range
 from .fits import guarded_solve
 from .qr import QRState, qr_append, qr_init
 from .reference import oga_reference_fit
 from .result import OGAResult
-from .symmetry import AbstractSymmetry, NoSymmetry
 
 __all__ = ["OGAResult", "oga_fit"]
 
@@ -84,15 +82,15 @@ class _Carry(NamedTuple):
 
 
 def oga_fit(
-    config: OGA | OGAReference,
+    config,
     activation: Callable,
     nodes: Array,
     weights: Array,
     y: Array,
     width: int,
     *,
-    bias_interval: tuple[float, float] = (-math.pi, math.pi),
-    dict_amount: int = 400,
+    bias_interval: tuple[float, float] | None = None,
+    dict_amount: int | None = None,
     modulation: Array | None = None,
     symmetry: AbstractSymmetry | None = None,
 ) -> OGAResult:
@@ -124,7 +122,9 @@ def oga_fit(
     - `y`: `(M,)` target values, dtype `T`.
     - `width`: number of neurons `S` (a positive Python int).
     - `bias_interval`: `(lo, hi)` with `lo < hi`, the bias range of grid dictionaries.
+        Default `None`: the configuration's own (`config.bias_interval`).
     - `dict_amount`: the dictionary resolution (number of bias intervals for `BiasGrid1d`).
+        Default `None`: the configuration's own (`config.dict_amount`).
     - `modulation`: optional `(M,)` factor multiplying every atom (e.g. `t (1 - t)` for an
         ansatz that vanishes at both ends); dtype `T`.
     - `symmetry`: how atoms map to neurons; `None` (the default) means `NoSymmetry()`;
@@ -134,21 +134,27 @@ def oga_fit(
 
     An `OGAResult`.
     """
+    # Any OGA seed says whether it is the reference's (`AbstractOGA.reference`); the class
+    # itself is not imported here, as it fits networks by calling this function.
+    if getattr(config, "reference", None) not in (True, False):
+        raise ValueError(f"oga_fit needs an OGA configuration, got {config!r}")
+    if bias_interval is None:
+        bias_interval = config.bias_interval
+    if dict_amount is None:
+        dict_amount = config.dict_amount
     raw = (nodes, weights, modulation)  # before validation turns them into (traced) arrays
-    if isinstance(config, OGAReference):
+    if config.reference:
         if modulation is not None or not isinstance(symmetry, NoSymmetry | None):
             raise ValueError(
                 "the reference seed (OGA1dNormalEquations) takes no modulation and no symmetry"
             )
         nodes, weights, y, _, bias_interval = _validate(
-            OGA(), activation, nodes, weights, y, width, bias_interval, dict_amount, None,
-            NoSymmetry(),
-        )  # fmt: skip
+            activation, nodes, weights, y, width, bias_interval, dict_amount, None, NoSymmetry()
+        )
         return _reference_jit(activation, nodes, weights, y, width, bias_interval, dict_amount)
     if symmetry is None:
         symmetry = NoSymmetry()
     nodes, weights, y, modulation, bias_interval = _validate(
-        config,
         activation,
         nodes,
         weights,
@@ -183,10 +189,8 @@ def _is_int(value) -> bool:
 
 
 def _validate(
-    config, activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
+    activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
 ):
-    if not isinstance(config, OGA):
-        raise ValueError(f"oga_fit needs an OGA configuration, got {config!r}")
     if not isinstance(symmetry, AbstractSymmetry):
         raise ValueError(f"symmetry must be an AbstractSymmetry instance, got {symmetry!r}")
     if not callable(activation):
@@ -223,18 +227,7 @@ def _validate(
     if not _is_int(width) or width < 1:
         raise ValueError(f"width must be a positive integer, got {width!r}")
     symmetry.check_width(int(width))
-    if not _is_int(dict_amount) or dict_amount < 1:
-        raise ValueError(f"dict_amount must be a positive integer, got {dict_amount!r}")
-    try:
-        lo, hi = (float(v) for v in bias_interval)
-    except (TypeError, ValueError) as err:
-        raise ValueError(
-            f"bias_interval must be a pair of real numbers (lo, hi), got {bias_interval!r}"
-        ) from err
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ValueError(
-            f"bias_interval must be finite and increasing (lo < hi), got {bias_interval!r}"
-        )
+    lo, hi = dictionary_range(bias_interval, dict_amount)
     check_activation(activation, dtype)
     return arrays["nodes"], arrays["weights"], arrays["y"], arrays.get("modulation"), (lo, hi)
 
@@ -280,7 +273,7 @@ def _oga_fit_jit(
 
 
 def _build_dictionary(
-    config: OGA,
+    config,
     activation: Callable,
     nodes: Array,
     weights: Array,
@@ -367,7 +360,7 @@ def _cached_dictionary(
 
 
 def oga_fit_traced(
-    config: OGA,
+    config,
     activation: Callable,
     nodes: Array,
     weights: Array,
@@ -387,7 +380,7 @@ def oga_fit_traced(
 
 
 def _greedy(
-    config: OGA,
+    config,
     activation: Callable,
     dic: _Dictionary,
     nodes: Array,

@@ -1,38 +1,18 @@
-"""Per-step seeds of the Newton solve: initial trajectories and parameter fits."""
+"""Per-step seeds of the Newton solve: the seed policy, initial trajectories and parameter
+fits (the OGA fits are in `diffrax_vi.oga`)."""
 
-from .fit import (
-    AbstractParameterSeed,
-    FitProblem,
-    InitialWeights,
-    LeastSquaresFit,
-    fit_network,
-)
-from .training import LSGD, TrainingMethod
-from .trajectories import (
-    AbstractInitialTrajectory,
-    HermiteExtrapolation,
-    IntegratorExtrapolation,
-    NoExtrapolation,
-    PreviousStep,
-    StepHistory,
-    implicit_midpoint,
-)
-from .trajectory_fit import TrajectoryFit
-
-__all__ = [
-    "LSGD",
-    "TrainingMethod",
-    "AbstractInitialTrajectory",
-    "AbstractParameterSeed",
-    "FitProblem",
-    "HermiteExtrapolation",
-    "InitialWeights",
-    "IntegratorExtrapolation",
-    "LeastSquaresFit",
-    "NoExtrapolation",
-    "PreviousStep",
-    "StepHistory",
-    "TrajectoryFit",
-    "fit_network",
-    "implicit_midpoint",
-]
+from ..parameter_seed import AbstractParameterSeed as AbstractParameterSeed
+from ..parameter_seed import FitProblem as FitProblem
+from .fit import InitialWeights as InitialWeights
+from .fit import LeastSquaresFit as LeastSquaresFit
+from .policy import SeedPolicy as SeedPolicy
+from .training import LSGD as LSGD
+from .training import TrainingMethod as TrainingMethod
+from .trajectories import AbstractInitialTrajectory as AbstractInitialTrajectory
+from .trajectories import HermiteExtrapolation as HermiteExtrapolation
+from .trajectories import IntegratorExtrapolation as IntegratorExtrapolation
+from .trajectories import NoExtrapolation as NoExtrapolation
+from .trajectories import PreviousStep as PreviousStep
+from .trajectories import StepHistory as StepHistory
+from .trajectories import implicit_midpoint as implicit_midpoint
+from .trajectory_fit import TrajectoryFit as TrajectoryFit

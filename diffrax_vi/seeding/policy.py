@@ -1,15 +1,15 @@
 """`NetworkVI`'s seed policy: where each step's nonlinear solve starts, and what it carries
 from one step to the next to choose that start.
 
-A step reads: `SeedPolicy.seed` (the start, from the policy's `SeedRecord`) -> the solve ->
-`SeedPolicy.accept` (the record after the converged step). The policy is built by `NetworkVI`
-from its options; it holds no state of its own.
+A user picks a `SeedPolicy` (`NetworkVI(seed=...)`); the solver binds it to its ansatz,
+formulation and root finder as a `Seeder`. A step reads: `Seeder.seed` (the start, from the
+`SeedRecord` carried in the solver state) -> the solve -> `Seeder.accept` (the record after
+the converged step). Neither holds state of its own.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -22,21 +22,90 @@ from ..ansatz.shallow import ShallowNetBasis
 from ..formulation import AbstractFormulation, FreeEndpoints, StepContext, stage_values
 from ..lazy import unless_all_skip
 from ..nonlinear import AbstractDampedNewton
-from ..oga import OGA, OGAReference
+from ..oga import AbstractOGA, OGA1d
+from ..parameter_seed import AbstractParameterSeed, fit_problem, with_constant_grid
 from ..projection import FirstSeedLayer, UniformLayer, VariableProjection
-from .fit import (
-    AbstractParameterSeed,
-    fit_problem,
-    refit_output_weights,
-    seed_parameters,
-    with_constant_grid,
+from ..step_hints import StepHints
+from .fit import refit_output_weights
+from .trajectories import (
+    AbstractInitialTrajectory,
+    HermiteExtrapolation,
+    IntegratorExtrapolation,
+    PreviousStep,
+    StepHistory,
 )
-from .trajectories import AbstractInitialTrajectory, HermiteExtrapolation, PreviousStep, StepHistory
 
-__all__ = [
-    "Seed", "SeedPolicy", "SeedRecord", "check_seed_options", "needs_all_parameter_step",
-    "residual_scale",
-]
+__all__ = ["Seed", "SeedPolicy", "SeedRecord", "Seeder", "residual_scale"]
+
+
+class SeedPolicy(eqx.Module):
+    """Where each step's nonlinear solve starts: the solver's `seed` option.
+
+    A seed is a fit (`initial_guess`) of a trajectory estimate (`initial_trajectory`) over the
+    step. The all-parameter step may instead start from the previous step's neurons with their
+    output weights refitted (`reuse_neurons`), or from the previous curve continued
+    (`PreviousStep()`). The default projected step (`VariableProjection()`) carries its hidden
+    layer from step to step and restarts from `initial_trajectory` where its start from the
+    previous curve does not converge; it fits no seed unless its `hidden` rule asks for one.
+
+    **Arguments:**
+
+    - `initial_trajectory`: the trajectory estimate a seed is fitted to:
+      `IntegratorExtrapolation()` (default), `HermiteExtrapolation()`, `NoExtrapolation()`, or
+      `PreviousStep()` (the previous curve continued, for the all-parameter step).
+    - `initial_guess`: how seed parameters are fitted to that trajectory: an OGA configuration
+      (default `OGA1d()`, which also holds the dictionary's `bias_interval` and
+      `dict_amount`), `LSGD()`, `TrainingMethod()`, `LeastSquaresFit()` (linear ansätze),
+      `InitialWeights(...)`, `TrajectoryFit()`, or any `AbstractParameterSeed`.
+    - `reuse_neurons`: seed an all-parameter step with the previous step's neurons and output
+      weights refitted to the new trajectory, where that fit is within `refit_tolerance`
+      (default `√eps`); otherwise, and on the first step, run the OGA. Default `False`.
+    - `refit_residual`, `refit_iterations`: refit only from a previous step whose solve ended
+      at most at this relative residual, or within this many iterations (default `None`: no
+      limit); guards for long runs (choosing page).
+    - `restart_failed`: where a solve from a seed carried over from the previous step fails,
+      restart it once from a fresh fit. Default `True`.
+    """
+
+    initial_trajectory: AbstractInitialTrajectory = IntegratorExtrapolation()
+    initial_guess: AbstractParameterSeed = OGA1d()
+    reuse_neurons: bool = eqx.field(static=True, default=False)
+    refit_tolerance: float | None = eqx.field(static=True, default=None)
+    refit_residual: float | None = eqx.field(static=True, default=None)
+    refit_iterations: int | None = eqx.field(static=True, default=None)
+    restart_failed: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        _check_policy(self)
+
+    @property
+    def all_parameter_only(self) -> bool:
+        """Whether this policy belongs to the all-parameter step only (the previous curve
+        continued, or refitted neurons)."""
+        return self.reuse_neurons or isinstance(self.initial_trajectory, PreviousStep)
+
+    @property
+    def fits_a_seed(self) -> bool:
+        """Whether `initial_guess` is other than the default `OGA1d()`: a choice that only a
+        step that fits seeds can honour."""
+        return self.initial_guess != OGA1d()
+
+    def check(self, basis: AbstractBasis, formulation: AbstractFormulation) -> None:
+        """Refuse a policy that does not fit the ansatz or the formulation, naming the option."""
+        _check_policy_against(self, basis, formulation)
+
+    def bind(
+        self, basis: AbstractBasis, formulation: AbstractFormulation, root_finder
+    ) -> Seeder:
+        """The policy as a solver with this ansatz, formulation and root finder runs it.
+        Refits need an OGA-seeded `ShallowNetBasis`; the fresh fit is left to the root finder
+        where it is damped (it takes a fallback) and the seed may be carried over from the
+        previous step."""
+        refits = self.reuse_neurons and _can_refit(basis, self.initial_guess)
+        lazy = isinstance(root_finder, AbstractDampedNewton) and (
+            isinstance(self.initial_trajectory, PreviousStep) or refits
+        )
+        return Seeder(self, formulation, refits, lazy)
 
 
 class SeedRecord(eqx.Module):
@@ -77,8 +146,8 @@ class Seed(NamedTuple):
     restart_history: StepHistory | None = None
 
 
-class SeedPolicy(eqx.Module):
-    """How `NetworkVI` seeds each step (`NetworkVI` builds it from its options by `build`).
+class Seeder(eqx.Module):
+    """A `SeedPolicy` bound to a solver (`SeedPolicy.bind`): the seeds of its steps.
 
     The all-parameter step starts from a fit (`initial_guess`) of the trajectory seed
     (`initial_trajectory`), from the previous step's neurons with refitted output weights
@@ -88,35 +157,14 @@ class SeedPolicy(eqx.Module):
     `VariableProjection` seeds its hidden layer by its `hidden` rule.
     """
 
+    policy: SeedPolicy
     formulation: AbstractFormulation
-    initial_trajectory: AbstractInitialTrajectory
-    initial_guess: OGA | OGAReference | AbstractParameterSeed
-    bias_interval: tuple[float, float] = eqx.field(static=True)
-    dict_amount: int = eqx.field(static=True)
     refits: bool = eqx.field(static=True)
-    refit_tolerance: float | None = eqx.field(static=True)
-    refit_residual: float | None = eqx.field(static=True)
-    refit_iterations: int | None = eqx.field(static=True)
-    restart_failed: bool = eqx.field(static=True)
     lazy: bool = eqx.field(static=True)
 
-    @classmethod
-    def build(
-        cls, basis: AbstractBasis, formulation: AbstractFormulation, root_finder, *,
-        initial_trajectory, initial_guess, bias_interval, dict_amount, reuse_neurons,
-        refit_tolerance, refit_residual, refit_iterations, restart_failed,
-    ) -> SeedPolicy:
-        """The policy of a solver's options. Refits need an OGA-seeded `ShallowNetBasis`; the
-        fresh fit is left to the root finder where it is damped (it takes a fallback) and the
-        seed may be carried over from the previous step."""
-        refits = bool(reuse_neurons) and _can_refit(basis, initial_guess)
-        lazy = isinstance(root_finder, AbstractDampedNewton) and (
-            isinstance(initial_trajectory, PreviousStep) or refits
-        )
-        return cls(
-            formulation, initial_trajectory, initial_guess, bias_interval, dict_amount, refits,
-            refit_tolerance, refit_residual, refit_iterations, restart_failed, lazy,
-        )
+    @property
+    def initial_trajectory(self) -> AbstractInitialTrajectory:
+        return self.policy.initial_trajectory
 
     # -- the record --------------------------------------------------------------------------
     def first_record(self, ctx: StepContext) -> SeedRecord:
@@ -174,12 +222,12 @@ class SeedPolicy(eqx.Module):
             seed, refitted = jax.lax.cond(
                 warm_used,
                 lambda: (warm, jnp.array(False)),
-                lambda: self._cold_seed(
+                lambda: self.cold_seed(
                     ctx, *cold_inputs, lazy=self.lazy, refit_ok=refit_ok
                 )[:2],
             )
         else:
-            seed, refitted, fit_inputs = self._cold_seed(
+            seed, refitted, fit_inputs = self.cold_seed(
                 ctx, *cold_inputs, lazy=self.lazy, refit_ok=refit_ok
             )
         if projected:  # `SeedLayer`: the span of this step's own seed
@@ -205,7 +253,7 @@ class SeedPolicy(eqx.Module):
             start = self._continued_or_constant(ctx, record, warm)
         else:
             seed = jax.lax.cond(
-                record.fresh, lambda: self._cold_seed(ctx, *cold_inputs)[0], lambda: warm
+                record.fresh, lambda: self.cold_seed(ctx, *cold_inputs)[0], lambda: warm
             )
             hidden = jnp.where(record.fresh, seed[0], record.theta)
             start = (functools.partial(ctx.basis.evaluate, seed[0]), seed[1])
@@ -247,10 +295,10 @@ class SeedPolicy(eqx.Module):
         slowly, are ill-conditioned, and refits carried on from them drift into worse ones,
         step after step."""
         allowed = jnp.array(True)
-        if self.refit_residual is not None:
-            allowed = last_residual <= self.refit_residual * residual_scale(ctx)
-        if self.refit_iterations is not None:
-            allowed = allowed & (last_iterations <= self.refit_iterations)
+        if self.policy.refit_residual is not None:
+            allowed = last_residual <= self.policy.refit_residual * residual_scale(ctx)
+        if self.policy.refit_iterations is not None:
+            allowed = allowed & (last_iterations <= self.policy.refit_iterations)
         return allowed
 
     # -- fits of the trajectory seed ---------------------------------------------------------
@@ -272,12 +320,10 @@ class SeedPolicy(eqx.Module):
     def _fresh_seed(self, ctx: StepContext, inputs):
         """The seed from a fresh fit (`initial_guess`) of the trajectory seed."""
         problem, q_end, p_end = inputs
-        theta = seed_parameters(
-            self.initial_guess, ctx.basis, problem, self.bias_interval, self.dict_amount
-        )
+        theta = self.policy.initial_guess.parameters(ctx.basis, problem)
         return jax.lax.stop_gradient(self.formulation.unknowns(theta, q_end, p_end))
 
-    def _cold_seed(
+    def cold_seed(
         self, ctx: StepContext, previous, fresh, history, lazy: bool = False, refit_ok=True
     ):
         """The seed from a trajectory fit, whether it reused the previous step's neurons
@@ -289,7 +335,7 @@ class SeedPolicy(eqx.Module):
             return self._fresh_seed(ctx, inputs), jnp.array(False), inputs
         problem, q_end, p_end = inputs
         theta, misfit = refit_output_weights(ctx.basis, problem)
-        tolerance = self.refit_tolerance
+        tolerance = self.policy.refit_tolerance
         if tolerance is None:
             tolerance = float(jnp.finfo(ctx.q0.dtype).eps) ** 0.5
         reused = ~fresh & (misfit <= tolerance) & refit_ok
@@ -301,23 +347,25 @@ class SeedPolicy(eqx.Module):
     # -- what the solve reads ----------------------------------------------------------------
     def root_find_start(self, seed: Seed):
         """The all-parameter root find's start, the seed part of its `args` (after the step
-        context) and its fallback options. The fresh trajectory fit, whose inputs travel in
+        context) and its fallback (`StepHints`). The fresh trajectory fit, whose inputs travel in
         the `args`, is the root finder's fallback (with `lazy`): it starts there where the
         carried seed (warm start or refitted neurons) is unusable, and restarts there once
         where the solve from the carried seed fails (`restart_failed`)."""
         restart_inputs = jax.lax.stop_gradient(seed.cold_inputs)
         carried = seed.warm | seed.refitted
         x0 = seed.start
-        options = {}
+        hints = StepHints()
         if self.lazy:
-            options["fallback"] = self.fallback
-            options["start_at_fallback"] = lambda a: ~a[2]
-            restart = self.restart_failed
-            options["fallback_usable"] = lambda a: a[2] & restart
+            restart = self.policy.restart_failed
+            hints = StepHints(
+                fallback=self.fallback,
+                start_at_fallback=lambda a: ~a[2],
+                fallback_usable=lambda a: a[2] & restart,
+            )
             # The unused seed only gives the shape: keep it finite.
             x0 = jax.tree_util.tree_map(lambda v: jnp.where(carried, v, 0), x0)
         args = (restart_inputs, carried, seed.fit_inputs if self.lazy else None)
-        return x0, args, options
+        return x0, args, hints
 
     def fallback(self, args):
         """The fresh seed the root finder starts or restarts from. Its `args` carry the step
@@ -368,45 +416,50 @@ def _history(ctx: StepContext, curve, q1: Array) -> StepHistory:
 
 def _can_refit(basis: AbstractBasis, initial_guess) -> bool:
     """Refits keep the neurons of an OGA-seeded shallow network and refit its output weights."""
-    return isinstance(initial_guess, OGA | OGAReference) and isinstance(basis, ShallowNetBasis)
+    return isinstance(initial_guess, AbstractOGA) and isinstance(basis, ShallowNetBasis)
 
 
-def needs_all_parameter_step(initial_trajectory, reuse_neurons: bool) -> bool:
-    """Whether these seed options belong to the all-parameter step only (the previous curve
-    continued, or refitted neurons)."""
-    return bool(reuse_neurons) or isinstance(initial_trajectory, PreviousStep)
-
-
-def check_seed_options(
-    basis: AbstractBasis, formulation: AbstractFormulation, *, initial_trajectory,
-    initial_guess, bias_interval, dict_amount, reuse_neurons, refit_tolerance, refit_residual,
-    refit_iterations, restart_failed, changed: list[str],
-) -> None:
-    """Refuse seed options that do not fit the ansatz or the formulation, naming them
-    (`changed`: the seed-fit options given other values than their defaults)."""
-    if not isinstance(initial_trajectory, AbstractInitialTrajectory):
+def _check_policy(policy: SeedPolicy) -> None:
+    """Refuse options of the wrong type or out of range, naming them."""
+    if not isinstance(policy.initial_trajectory, AbstractInitialTrajectory):
         raise TypeError(
             "initial_trajectory must be IntegratorExtrapolation(), HermiteExtrapolation(), "
-            f"NoExtrapolation() or PreviousStep(); got {initial_trajectory!r}"
+            f"NoExtrapolation() or PreviousStep(); got {policy.initial_trajectory!r}"
         )
+    if not isinstance(policy.initial_guess, AbstractParameterSeed):
+        raise TypeError(
+            "initial_guess must be an OGA configuration (e.g. OGA1d()) or a parameter seed "
+            f"(LSGD(), TrainingMethod(), LeastSquaresFit(), ...); got {policy.initial_guess!r}"
+        )
+    for name in ("restart_failed", "reuse_neurons"):
+        if not isinstance(getattr(policy, name), bool):
+            raise TypeError(f"{name} must be True or False, got {getattr(policy, name)!r}")
+    for name in ("refit_tolerance", "refit_residual"):
+        tol = getattr(policy, name)
+        if tol is not None and not (
+            isinstance(tol, int | float) and not isinstance(tol, bool) and tol >= 0
+        ):
+            raise ValueError(f"{name} must be None or a number >= 0, got {tol!r}")
+        if tol is not None and not policy.reuse_neurons:
+            raise ValueError(f"{name} applies to refits: pass it with reuse_neurons=True")
+    cap = policy.refit_iterations
+    if cap is not None and (not isinstance(cap, int) or isinstance(cap, bool) or cap < 0):
+        raise ValueError(f"refit_iterations must be None or an integer >= 0, got {cap!r}")
+    if cap is not None and not policy.reuse_neurons:
+        raise ValueError("refit_iterations applies to refits: pass it with reuse_neurons=True")
+
+
+def _check_policy_against(
+    policy: SeedPolicy, basis: AbstractBasis, formulation: AbstractFormulation
+) -> None:
+    """Refuse a policy that does not fit the ansatz or the formulation, naming the option."""
     # The fixed span of the projected step needs no seed fit at all.
     fixed_span = isinstance(formulation, VariableProjection) and isinstance(
         formulation.hidden, UniformLayer
     )
-    if isinstance(initial_guess, OGA | OGAReference):
-        if not fixed_span and not isinstance(basis, ShallowNetBasis):
-            raise ValueError(
-                f"an OGA seed fits shallow networks; {basis!r} needs another initial_guess "
-                "(e.g. LSGD() for DenseNetBasis, LeastSquaresFit() for LagrangeBasis)"
-            )
-    elif isinstance(initial_guess, AbstractParameterSeed):
-        initial_guess.check(basis)
-    else:
-        raise TypeError(
-            "initial_guess must be an OGA configuration (e.g. OGA1d()) or a parameter seed "
-            f"(LSGD(), TrainingMethod(), LeastSquaresFit(), ...); got {initial_guess!r}"
-        )
-    if isinstance(initial_trajectory, PreviousStep):
+    if not fixed_span:
+        policy.initial_guess.check(basis)
+    if isinstance(policy.initial_trajectory, PreviousStep):
         if not isinstance(formulation, FreeEndpoints) or not basis.can_advance:
             raise ValueError(
                 "PreviousStep continues the previous step's curve past its end, which needs "
@@ -414,43 +467,22 @@ def check_seed_options(
                 f"{type(formulation).__name__}() cannot. Use IntegratorExtrapolation() or "
                 "HermiteExtrapolation()."
             )
-    lo, hi = bias_interval
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ValueError(f"bias_interval must be finite and increasing, got {bias_interval!r}")
-    if not isinstance(dict_amount, int) or dict_amount < 1:
-        raise ValueError(f"dict_amount must be a positive integer, got {dict_amount!r}")
     if isinstance(formulation, VariableProjection):
-        if needs_all_parameter_step(initial_trajectory, reuse_neurons):
+        if policy.all_parameter_only:
             raise ValueError(
                 "VariableProjection() carries its hidden layer from step to step by its "
                 "`hidden` rule; reuse_neurons and PreviousStep() belong to the all-parameter "
                 "formulations"
             )
-        if fixed_span and changed:
+        if fixed_span and policy.fits_a_seed:
             raise ValueError(
                 "VariableProjection() with its fixed UniformLayer() fits no seed, so "
-                f"{', '.join(changed)} would have no effect; use hidden=SeedLayer() or "
+                "initial_guess would have no effect; use hidden=SeedLayer() or "
                 "FirstSeedLayer() to seed the hidden layer by a fit, or "
                 "formulation=FreeEndpoints() for the all-parameter step"
             )
-    if not isinstance(restart_failed, bool):
-        raise TypeError(f"restart_failed must be True or False, got {restart_failed!r}")
-    if not isinstance(reuse_neurons, bool):
-        raise TypeError(f"reuse_neurons must be True or False, got {reuse_neurons!r}")
-    if reuse_neurons and not _can_refit(basis, initial_guess):
+    if policy.reuse_neurons and not _can_refit(basis, policy.initial_guess):
         raise ValueError(
             "reuse_neurons refits the output weights of a ShallowNetBasis seeded by an OGA "
-            f"configuration; got {basis!r} with {initial_guess!r}"
+            f"configuration; got {basis!r} with {policy.initial_guess!r}"
         )
-    for name, tol in (("refit_tolerance", refit_tolerance), ("refit_residual", refit_residual)):
-        if tol is not None and not (
-            isinstance(tol, int | float) and not isinstance(tol, bool) and tol >= 0
-        ):
-            raise ValueError(f"{name} must be None or a number >= 0, got {tol!r}")
-        if tol is not None and not reuse_neurons:
-            raise ValueError(f"{name} applies to refits: pass it with reuse_neurons=True")
-    cap = refit_iterations
-    if cap is not None and (not isinstance(cap, int) or isinstance(cap, bool) or cap < 0):
-        raise ValueError(f"refit_iterations must be None or an integer >= 0, got {cap!r}")
-    if cap is not None and not reuse_neurons:
-        raise ValueError("refit_iterations applies to refits: pass it with reuse_neurons=True")

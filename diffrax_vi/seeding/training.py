@@ -32,8 +32,8 @@ from ..ansatz.base import AbstractBasis
 from ..ansatz.dense import DenseNetBasis
 from ..ansatz.shallow import ShallowNetBasis
 from ..linalg import damped_least_squares
+from ..parameter_seed import AbstractParameterSeed, FitProblem
 from ..precision import lapack_dtype
-from .fit import AbstractParameterSeed, FitProblem
 
 __all__ = ["LSGD", "TrainingMethod", "box_layer", "default_init_scale"]
 
@@ -171,6 +171,15 @@ def _grid(problem: FitProblem, work) -> _Grid:
     return _Grid(nodes, weights, modulation)
 
 
+def _setup(tolerance: float | None, problem: FitProblem):
+    """What a training run starts from: the targets' dtype, the dtype it computes in, the
+    sample grid, and the loss tolerance in that dtype."""
+    dtype = problem.targets.dtype
+    work = lapack_dtype(dtype)
+    tol = _scaled_tolerance(tolerance, dtype, problem.targets).astype(work)
+    return dtype, work, _grid(problem, work), tol
+
+
 def _scaled_tolerance(tolerance: float | None, dtype, targets: Array) -> Array:
     """Absolute loss tolerance: `tolerance` (default `sqrt(eps)` of the working dtype) times
     the largest target magnitude."""
@@ -291,12 +300,9 @@ class LSGD(AbstractParameterSeed):
             return tuple(float(x) for x in self.init_scale)
         return (float(self.init_scale),)
 
-    def fit(self, basis: AbstractBasis, problem: FitProblem) -> Array:
+    def parameters(self, basis: AbstractBasis, problem: FitProblem) -> Array:
         self.check(basis)
-        dtype = problem.targets.dtype
-        work = lapack_dtype(dtype)
-        grid = _grid(problem, work)
-        tol = _scaled_tolerance(self.tolerance, dtype, problem.targets).astype(work)
+        dtype, work, grid, tol = _setup(self.tolerance, problem)
         lr = jnp.asarray(self.learning_rate, work)
         scales = self._scales(dtype)
 
@@ -423,12 +429,9 @@ class TrainingMethod(AbstractParameterSeed):
             return float(self.learning_rate[0]), float(self.learning_rate[1])
         return float(self.learning_rate), float(self.learning_rate)
 
-    def fit(self, basis: AbstractBasis, problem: FitProblem) -> Array:
+    def parameters(self, basis: AbstractBasis, problem: FitProblem) -> Array:
         self.check(basis)
-        dtype = problem.targets.dtype
-        work = lapack_dtype(dtype)
-        grid = _grid(problem, work)
-        tol = _scaled_tolerance(self.tolerance, dtype, problem.targets).astype(work)
+        dtype, work, grid, tol = _setup(self.tolerance, problem)
         eta1, eta2 = self._rates()
         # η_k = η₁ (η₂/η₁)^(k/epochs), computed in the work dtype (no float64 in float32 runs).
         log_ratio = jnp.asarray(math.log(eta2 / eta1) / max(self.epochs, 1), work)

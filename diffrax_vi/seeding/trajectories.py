@@ -8,6 +8,8 @@ Lagrangians).
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -63,6 +65,11 @@ class AbstractInitialTrajectory(eqx.Module):
                 f"substeps must be an even integer >= 2 (the seed fit uses Simpson weights on "
                 f"the sub-step grid); got {n!r}"
             )
+
+    def with_substeps(self, substeps: int) -> AbstractInitialTrajectory:
+        """This estimate on `substeps` sub-steps (the reference's `extrapolation_substep`);
+        an estimate that continues another replaces the other's."""
+        return dataclasses.replace(self, substeps=substeps)
 
     def labels(
         self,
@@ -182,6 +189,9 @@ class PreviousStep(AbstractInitialTrajectory):
         if isinstance(self.first, PreviousStep):
             raise ValueError("PreviousStep(first=...) needs a strategy that works without history")
 
+    def with_substeps(self, substeps: int) -> AbstractInitialTrajectory:
+        return dataclasses.replace(self, first=self.first.with_substeps(substeps))
+
     def accept_tolerance(self, dtype) -> float:
         if self.tolerance is not None:
             return self.tolerance
@@ -231,6 +241,10 @@ class HermiteExtrapolation(AbstractInitialTrajectory):
                 f"HermiteExtrapolation(substeps={self.substeps}) needs a first strategy on the "
                 f"same label grid; got {self.first!r} with substeps={self.first.substeps}"
             )
+
+    def with_substeps(self, substeps: int) -> AbstractInitialTrajectory:
+        first = None if self.first is None else self.first.with_substeps(substeps)
+        return dataclasses.replace(self, substeps=substeps, first=first)
 
     def _first(self) -> AbstractInitialTrajectory:
         return self.first if self.first is not None else IntegratorExtrapolation(self.substeps)

@@ -9,7 +9,8 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from ..linalg import damped_least_squares
-from .fit import AbstractParameterSeed, FitProblem, frozen_values
+from ..parameter_seed import AbstractParameterSeed, FitProblem
+from .fit import frozen_values
 
 __all__ = ["TrajectoryFit"]
 
@@ -67,7 +68,7 @@ class TrajectoryFit(AbstractParameterSeed):
                 f"restart_radius must be non-negative or None, got {self.restart_radius!r}"
             )
 
-    def fit(self, basis, problem: FitProblem):
+    def parameters(self, basis, problem: FitProblem):
         dtype = problem.targets.dtype
         init = basis.params_from(self.init, dtype)
         flat_init, unravel = ravel_pytree(init)

@@ -11,33 +11,13 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.seeding.trajectories import hermite_cubic
+from tests.helpers import max_relative_error, solve_problem
 
 B = dvi.ShallowNetBasis
 GL = dvi.GaussLegendre
 
 
-def run(problem, solver, **kwargs):
-    ts = jnp.asarray(problem.ts)
-    call = eqx.filter_jit(
-        lambda y0: diffrax.diffeqsolve(
-            problem.term,
-            solver,
-            problem.t0,
-            problem.t1,
-            problem.dt,
-            y0,
-            args=problem.args,
-            saveat=diffrax.SaveAt(ts=ts, solver_state=True),
-            **kwargs,
-        )
-    )
-    return call(problem.y0)
-
-
-def max_relative_error(problem, sol):
-    q_ref, _ = problem.reference(np.asarray(sol.ts))
-    q = np.asarray(sol.ys[0])
-    return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
+run = solve_problem
 
 
 def roundtrip(problem, solver, h=0.1):
@@ -60,7 +40,7 @@ def test_shallow_net_autodiff_accuracy_and_continuous_dense_output():
     problem = problems.harmonic_oscillator()
     solver = dvi.ShallowNetAutodiff(B(dvi.tanh, 10), GL(8))
     assert isinstance(solver.formulation, dvi.InterpolatingEndpoints)
-    assert solver.initial_guess == dvi.OGA1dNormalized()
+    assert solver.seed.initial_guess == dvi.OGA1dNormalized()
     ts = jnp.asarray(problem.ts)
     sol = diffrax.diffeqsolve(
         problem.term,
@@ -352,7 +332,7 @@ def test_vise_constructor_configures_initial_weights():
     t, w1, w2, w3 = sympy.symbols("t w1 w2 w3")
     basis = dvi.SymbolicAnsatz([w1 * sympy.cos(w2 * t + w3)], [[w1, w2, w3]], t)
     solver = dvi.VISE(basis, GL(4), [[0.5, 0.7, 0.0]])
-    assert solver.initial_guess == dvi.InitialWeights(((0.5, 0.7, 0.0),))
+    assert solver.seed.initial_guess == dvi.InitialWeights(((0.5, 0.7, 0.0),))
     assert isinstance(solver.formulation, dvi.FreeEndpoints)
     cgvi = dvi.CGVI(3)
     assert cgvi.basis == dvi.LagrangeBasis(3) and cgvi.quadrature == GL(4)
@@ -368,14 +348,14 @@ def test_vise_constructor_configures_initial_weights():
     ):
         reference = dvi.CGVI(3, **options)
         assert isinstance(reference.formulation, dvi.FreeEndpoints), options
-        assert isinstance(reference.initial_guess, dvi.LeastSquaresFit)
+        assert isinstance(reference.seed.initial_guess, dvi.LeastSquaresFit)
 
 
 def test_every_public_name_resolves_and_sympy_loads_lazily():
     import subprocess
     import sys
 
-    missing = [name for name in dvi.__all__ if not hasattr(dvi, name)]
+    missing = [name for name in dir(dvi) if not hasattr(dvi, name)]
     assert not missing
     code = "import sys, diffrax_vi; print('sympy' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -404,9 +384,9 @@ def test_every_activation_works_in_reduced_precision(dtype, bound):
 
 def test_dense_net_constructor_defaults_to_lsgd_and_refuses_other_bases():
     solver = dvi.DenseNet(dvi.DenseNetBasis(dvi.tanh, 8, 8), GL(8))
-    assert solver.initial_guess == dvi.LSGD()
+    assert solver.seed.initial_guess == dvi.LSGD()
     short = dvi.DenseNet(dvi.DenseNetBasis(dvi.tanh, 8, 8), GL(8), training_epochs=11)
-    assert short.initial_guess == dvi.LSGD(epochs=11)
+    assert short.seed.initial_guess == dvi.LSGD(epochs=11)
     assert isinstance(solver.formulation, dvi.FreeEndpoints)
     with pytest.raises(TypeError, match="DenseNetBasis"):
         dvi.DenseNet(B(dvi.tanh, 8), GL(8))

@@ -2,6 +2,7 @@
 progress meters, statistics, and the same term in diffrax's own solvers."""
 
 import math
+from functools import partial
 
 import diffrax
 import equinox as eqx
@@ -12,6 +13,7 @@ import optimistix as optx
 import pytest
 
 import diffrax_vi as dvi
+from tests.helpers import shallow_network
 
 OMEGA = math.sqrt(0.5)
 
@@ -33,8 +35,7 @@ def exact(ts, k=0.5, q0=0.5, p0=0.0):
     )
 
 
-def solver(**kwargs):
-    return dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8), **kwargs)
+solver = partial(shallow_network, dvi.tanh, 10, 8)
 
 
 SOLVER = solver()

@@ -28,6 +28,7 @@ from diffrax_vi.problems import (  # noqa: E402
 from diffrax_vi.problems.kepler import solve_kepler_equation  # noqa: E402
 from diffrax_vi.problems.stored import load_reference_data  # noqa: E402
 from diffrax_vi.problems.toda_lattice import bump_initial_condition  # noqa: E402
+from tests.helpers import solve_adaptive  # noqa: E402
 
 FACTORIES = [toda_lattice, henon_heiles, perturbed_pendulum, outer_solar_system, kepler]
 STORED = [
@@ -62,21 +63,8 @@ DOP853_AGREEMENT = {"double_pendulum": 3e-11}
 
 
 def _solve(problem: Problem, solver, rtol, atol):
-    ts = jnp.asarray(problem.ts, dtype=problem.dtype)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol)
-    sol = diffrax.diffeqsolve(
-        problem.term,
-        solver,
-        t0=problem.t0,
-        t1=problem.t1,
-        dt0=problem.dt,
-        y0=problem.y0,
-        args=problem.args,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.ClipStepSizeController(controller, step_ts=ts),
-        max_steps=100_000,
-    )
-    return np.asarray(sol.ys[0]), np.asarray(sol.ys[1])
+    q, p = solve_adaptive(problem, solver, rtol, atol)
+    return np.asarray(q), np.asarray(p)
 
 
 def _invariants_along(problem: Problem, q: np.ndarray, p: np.ndarray) -> dict[str, np.ndarray]:

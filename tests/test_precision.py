@@ -110,7 +110,7 @@ def test_confirming_update_removes_the_energy_bias_of_a_step():
     for confirm in (False, True):
         solver = dvi.CGVI(7, compensated=False,
                           root_finder=dvi.RoundoffNewton(ftol=1.0, confirm=confirm))
-        ctx = solver._context(problem.term, 0.0, h, problem.y0, problem.args)
+        ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
         span = solver.formulation.span(jnp.zeros((solver.basis.num_params(), 1)), ctx)
         run = jax.jit(lambda y, solver=solver: diffrax.diffeqsolve(
             problem.term, solver, 0.0, steps * h, h, y, args=problem.args, max_steps=steps,

@@ -1,9 +1,7 @@
-"""sympy → JAX compilation, sympy derivative kernels of the network ansätze, and VISE."""
+"""sympy → JAX compilation and the sympy derivative kernels of the network ansätze
+(`diffrax_vi.symbolic.codegen`)."""
 
-import math
 
-import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,9 +9,7 @@ import pytest
 import sympy
 
 import diffrax_vi as dvi
-from diffrax_vi import problems
-from diffrax_vi.oga.symmetry import MirrorPairs, SharedMirrorPairs
-from diffrax_vi.seeding.fit import InitialWeights, fit_problem
+from diffrax_vi.ansatz.symmetry import MirrorPairs, SharedMirrorPairs
 from diffrax_vi.symbolic import (
     compile_exprs,
     curve_function,
@@ -22,7 +18,6 @@ from diffrax_vi.symbolic import (
     symbolic_shallow_evaluate,
     sympy_activation,
 )
-from diffrax_vi.symbolic.ansatz import SymbolicAnsatz, VISEBasis
 
 x, y = sympy.symbols("x y", real=True)
 
@@ -218,160 +213,3 @@ def test_generic_curve_evaluate():
     second = jax.grad(jax.grad(lambda s: evaluate(theta, s)[0]))(0.4)
     want = jax.grad(jax.grad(lambda s: autodiff(theta, s)[0]))(0.4)
     np.testing.assert_allclose(second, want, rtol=1e-13)
-
-
-# -- SymbolicAnsatz -----------------------------------------------------------------------------
-
-t = sympy.Symbol("t")
-W1, W2, W3 = sympy.symbols("W1 W2 W3")
-
-
-def test_symbolic_ansatz_interface():
-    V1, V2 = sympy.symbols("V1 V2")
-    basis = SymbolicAnsatz(
-        [W1 * sympy.cos(W2 * t + W3), V1 * t**2 + V2], [[W1, W2, W3], [V1, V2]], t
-    )
-    assert VISEBasis is SymbolicAnsatz
-    assert hash(basis) == hash(SymbolicAnsatz(list(basis.exprs), basis.weights, t))
-    theta = basis.params_from(((0.5, 2.0, 0.1), (1.5, -1.0)), jnp.float64)
-    assert [w.shape for w in theta] == [(3,), (2,)]
-    assert [w.shape for w in basis.zeros(2, jnp.float32)] == [(3,), (2,)]
-    assert basis.num_params() == 5
-
-    bound = basis.at_step(jnp.asarray(1.2), jnp.asarray(0.5))
-    q, dq = bound.value_and_derivative(theta, 0.4)
-    s = 1.2 + 0.4 * 0.5
-    np.testing.assert_allclose(q, [0.5 * math.cos(2 * s + 0.1), 1.5 * s**2 - 1], rtol=1e-15)
-    # dq/dτ = h dq/dt.
-    np.testing.assert_allclose(
-        dq, [-0.5 * 0.5 * 2 * math.sin(2 * s + 0.1), 0.5 * 3 * s], rtol=1e-14
-    )
-    # Unbound, the second argument is the absolute time.
-    np.testing.assert_allclose(basis.evaluate(theta, s), q, rtol=1e-15)
-    assert basis.advance(theta, 2.0) is theta
-    # Single coordinate: a flat weight sequence and flat initial values are accepted.
-    one = SymbolicAnsatz([W1 * t], [W1], t)
-    assert one.weights == ((W1,),)
-    assert one.params_from((2.0,), jnp.float64)[0].shape == (1,)
-
-
-def test_symbolic_ansatz_refuses_bad_input():
-    with pytest.raises(ValueError, match="Z"):
-        SymbolicAnsatz([W1 * sympy.cos(sympy.Symbol("Z") * t)], [[W1]], t)
-    with pytest.raises(ValueError, match="coordinate 0"):
-        SymbolicAnsatz([W1 * t + W2, W2 * t], [[W1], [W2]], t)
-    with pytest.raises(ValueError, match="2 expression"):
-        SymbolicAnsatz([W1 * t, W2 * t], [[W1, W2]], t)
-    with pytest.raises(ValueError, match="one weight sequence per coordinate"):
-        SymbolicAnsatz([W1 * t], [[W1], [W2]], t)
-    basis = SymbolicAnsatz([W1 * sympy.cos(W2 * t + W3)], [[W1, W2, W3]], t)
-    with pytest.raises(ValueError, match="3 weights"):
-        basis.params_from(((0.5, 1.0),), jnp.float64)
-    with pytest.raises(ValueError, match="coordinate"):
-        basis.zeros(2, jnp.float64)
-
-
-def test_initial_weights_restart_rule():
-    basis = SymbolicAnsatz([W1 * sympy.cos(W2 * t + W3)], [[W1, W2, W3]], t)
-    seed = InitialWeights(init=((0.5, 0.7, 0.0),), restart_radius=1.0)
-    targets = jnp.zeros((11, 1))
-    init = np.array([0.5, 0.7, 0.0])
-
-    def seeded(previous, fresh):
-        problem = fit_problem(targets, False, (jnp.asarray(previous),), jnp.asarray(fresh))
-        return np.asarray(seed.fit(basis, problem)[0])
-
-    near, far = init + [0.3, -0.4, 0.5], init + [0.0, 0.0, 1.2]
-    np.testing.assert_array_equal(seeded(near, True), init)  # first step: init
-    np.testing.assert_array_equal(seeded(near, False), near)  # warm start
-    np.testing.assert_array_equal(seeded(far, False), init)  # drifted: restart
-    never = InitialWeights(init=((0.5, 0.7, 0.0),), restart_radius=None)
-    problem = fit_problem(targets, False, (jnp.asarray(far),), jnp.asarray(False))
-    np.testing.assert_array_equal(np.asarray(never.fit(basis, problem)[0]), far)
-
-
-# -- VISE end to end ----------------------------------------------------------------------------
-
-
-def test_vise_harmonic_oscillator():
-    """The reference's VISE test: `W1 cos(W2 t + W3)` from the exact weights, GL4, 1 and 5
-    steps of 0.1 (the first saved point is the 1-step result)."""
-    basis = SymbolicAnsatz([W1 * sympy.cos(W2 * t + W3)], [[W1, W2, W3]], t)
-    solver = dvi.NetworkVI(
-        basis,
-        dvi.GaussLegendre(4),
-        initial_guess=InitialWeights(init=((0.5, math.sqrt(0.5), 0.0),)),
-        initial_trajectory=dvi.IntegratorExtrapolation(),
-    )
-    problem = problems.harmonic_oscillator(t1=0.5)
-    ts = jnp.array([0.1, 0.5])
-    sol = eqx.filter_jit(
-        lambda y0: diffrax.diffeqsolve(
-            problem.term,
-            solver,
-            0.0,
-            0.5,
-            0.1,
-            y0,
-            args=problem.args,
-            saveat=diffrax.SaveAt(ts=ts, dense=True, solver_state=True),
-        )
-    )(problem.y0)
-    assert sol.result == diffrax.RESULTS.successful
-    q_ref, p_ref = problem.reference(np.asarray(ts))
-    assert np.max(np.abs(np.asarray(sol.ys[0]) - q_ref)) < 1e-12
-    assert np.max(np.abs(np.asarray(sol.ys[1]) - p_ref)) < 1e-12
-    assert int(sol.solver_state.steps) == 5
-    # Dense output follows the converged cosine inside a step.
-    q_mid, _ = sol.evaluate(0.25)
-    assert abs(float(q_mid[0]) - 0.5 * math.cos(math.sqrt(0.5) * 0.25)) < 1e-12
-
-
-def _henon_heiles_lagrangian(t, q, v, args):
-    return 0.5 * jnp.sum(v**2) - 0.5 * jnp.sum(q**2) - (q[0] ** 2 * q[1] - q[1] ** 3 / 3)
-
-
-def _henon_heiles_energy(q, p):
-    q1, q2 = q[..., 0], q[..., 1]
-    with np.errstate(invalid="ignore"):  # a failed run leaves NaN/inf states
-        return 0.5 * np.sum(p**2, -1) + 0.5 * np.sum(q**2, -1) + q1**2 * q2 - q2**3 / 3
-
-
-def _vise_henon_heiles(t1):
-    """The reference's VISE setting (problems_and_benchmarks.md §1.5): `q₀ = p₀ = (0.1, 0.1)`,
-    h = 2, 8-node Gauss–Legendre, `W1 cos(W2 t + W3) + W4` per coordinate from the documented
-    weights, Newton without regularisation (the reference's `regularization_factor = 0`)."""
-    weights = [sympy.symbols(f"A{d}_1:5") for d in range(2)]
-    exprs = [w[0] * sympy.cos(w[1] * t + w[2]) + w[3] for w in weights]
-    init = ((0.14831, 1.0, -0.64812, -0.018712), (0.14298, -0.97215, 0.7615, -0.0013983))
-    solver = dvi.NetworkVI(
-        SymbolicAnsatz(exprs, weights, t),
-        dvi.GaussLegendre(8),
-        initial_guess=InitialWeights(init=init),
-        initial_trajectory=dvi.IntegratorExtrapolation(),
-        root_finder=dvi.RegularisedNewton(lam=1e-12),
-    )
-    y0 = (jnp.array([0.1, 0.1]), jnp.array([0.1, 0.1]))
-    ts = jnp.arange(2.0, t1 + 1.0, 2.0)
-    sol = eqx.filter_jit(
-        lambda y0: diffrax.diffeqsolve(
-            dvi.LagrangianTerm(_henon_heiles_lagrangian),
-            solver,
-            0.0,
-            t1,
-            2.0,
-            y0,
-            saveat=diffrax.SaveAt(ts=ts),
-            throw=False,
-        )
-    )(y0)
-    h0 = _henon_heiles_energy(np.array([0.1, 0.1]), np.array([0.1, 0.1]))
-    energy = _henon_heiles_energy(np.asarray(sol.ys[0]), np.asarray(sol.ys[1]))
-    return sol, np.max(np.abs(energy - h0)) / h0
-
-
-def test_vise_henon_heiles():
-    # Over the first 8 steps every step converges; measured max relative energy error 2.0e-4.
-    sol, energy_error = _vise_henon_heiles(16.0)
-    assert sol.result == diffrax.RESULTS.successful
-    assert energy_error < 1e-3

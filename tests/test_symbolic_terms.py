@@ -13,6 +13,7 @@ import sympy
 
 import diffrax_vi as dvi
 from diffrax_vi.symbolic.terms import SympyLagrangianTerm, sympy_lagrangian_term
+from tests.helpers import henon_heiles_lagrangian as _henon_heiles
 
 jax.config.update("jax_enable_x64", True)
 
@@ -334,10 +335,6 @@ def test_non_quadratic_and_degenerate_lagrangians():
 # -- separable pairs for SemiImplicitEuler -----------------------------------------------------
 def _oscillator(t, q, v, args):
     return jnp.sum(2.0 * v**2 / 2 - 3.0 * q**2 / 2)  # m = 2, k = 3
-
-
-def _henon_heiles(t, q, v, args):
-    return 0.5 * jnp.sum(v**2) - 0.5 * jnp.sum(q**2) - (q[0] ** 2 * q[1] - q[1] ** 3 / 3)
 
 
 def _henon_heiles_energy(q, p):

@@ -1,5 +1,7 @@
-"""Gauss–Legendre and Gauss–Lobatto coefficients: computed in extended precision, rounded once
-to the working dtype, with their symmetries exact in that dtype (issue 28)."""
+"""The quadrature rules (`diffrax_vi.quadrature`): exactness, dtypes and refused counts of
+`GaussLegendre` and `Simpson`; Gauss–Legendre and Gauss–Lobatto coefficients computed in
+extended precision, rounded once to the working dtype, with their symmetries exact in that
+dtype (issue 28)."""
 
 import jax
 
@@ -18,8 +20,9 @@ import pytest  # noqa: E402
 
 from diffrax_vi import quadrature  # noqa: E402
 from diffrax_vi.ansatz.polynomial import lobatto_points  # noqa: E402
-from diffrax_vi.quadrature import GaussLegendre  # noqa: E402
+from diffrax_vi.quadrature import GaussLegendre, Simpson  # noqa: E402
 
+F64 = jnp.float64
 NS = range(1, 33)
 DTYPES = [np.float64, np.float32, np.float16]
 
@@ -188,3 +191,67 @@ def test_lobatto_points_symmetric_and_roots_of_the_legendre_derivative(degree):
             assert abs(slope) < mpmath.mpf(10) ** -60
         for value, x in zip(pts[len(pts) - len(upper) - 1: -1], upper, strict=True):
             assert error_in_ulps(value, x, np.float64) <= 0.5
+
+
+def _integrate(rule, f):
+    c, b = rule.nodes_weights(F64)
+    return float(jnp.sum(b * f(c)))
+
+
+# -- the rules in the working dtype ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 6])
+def test_gauss_legendre_exact_up_to_degree_2n_minus_1(n):
+    rule = GaussLegendre(n)
+    for k in range(2 * n):
+        assert _integrate(rule, lambda x: x**k) == pytest.approx(1 / (k + 1), abs=1e-14), k
+    # Degree 2n is not integrated exactly: the error is (n!)^4 / ((2n+1) ((2n)!)^2) > 0.
+    err = 1 / (2 * n + 1) - _integrate(rule, lambda x: x ** (2 * n))
+    expected = math.factorial(n) ** 4 / ((2 * n + 1) * math.factorial(2 * n) ** 2)
+    assert err == pytest.approx(expected, rel=1e-6)
+    assert rule.order == 2 * n
+    assert rule.num_nodes == n
+
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+def test_gauss_legendre_nodes_in_unit_interval_weights_sum_to_one(n):
+    c, b = GaussLegendre(n).nodes_weights(F64)
+    assert c.shape == b.shape == (n,)
+    assert float(jnp.sum(b)) == pytest.approx(1.0, abs=1e-15)
+    assert bool(jnp.all((c > 0) & (c < 1))) and bool(jnp.all(b > 0))
+    assert bool(jnp.all(jnp.diff(c) > 0))
+
+
+@pytest.mark.parametrize("rule", [GaussLegendre(4), Simpson(6)])
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
+def test_quadrature_dtype_honoured(rule, dtype):
+    c, b = rule.nodes_weights(dtype)
+    assert c.dtype == jnp.dtype(dtype) and b.dtype == jnp.dtype(dtype)
+    tol = {jnp.float16: 2e-3, jnp.float32: 1e-6, jnp.float64: 1e-15}[dtype]
+    assert float(jnp.sum(b.astype(F64))) == pytest.approx(1.0, abs=tol)
+
+
+@pytest.mark.parametrize("n", [2, 4, 10])
+def test_simpson_exact_for_cubics_not_quartics(n):
+    rule = Simpson(n)
+    c, b = rule.nodes_weights(F64)
+    np.testing.assert_allclose(np.asarray(c), np.arange(n + 1) / n, atol=0)
+    assert float(jnp.sum(b)) == pytest.approx(1.0, abs=1e-15)
+    cubic = lambda x: 2.0 - 3.0 * x + 5.0 * x**2 - 7.0 * x**3
+    assert _integrate(rule, cubic) == pytest.approx(2.0 - 1.5 + 5 / 3 - 7 / 4, abs=1e-14)
+    # Composite Simpson error for x^4: (1/180) h^4 * 4! with h = 1/n.
+    err = _integrate(rule, lambda x: x**4) - 0.2
+    assert err == pytest.approx(24 / 180 / n**4, rel=1e-8)
+
+
+@pytest.mark.parametrize("n", [0, 1, 3, 7, -2, 2.0, True])
+def test_simpson_refuses_odd_or_nonpositive(n):
+    with pytest.raises(ValueError, match="even, positive"):
+        Simpson(n)
+
+
+@pytest.mark.parametrize("n", [0, -1, 2.0, True])
+def test_gauss_legendre_refuses_bad_counts(n):
+    with pytest.raises(ValueError, match="positive integer"):
+        GaussLegendre(n)

@@ -1,7 +1,8 @@
 """DenseNetBasis and its training seeds (LSGD, TrainingMethod), alone and inside NetworkVI."""
 
+from functools import partial
+
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,8 +13,9 @@ from diffrax_vi import problems
 from diffrax_vi.ansatz.base import AbstractBasis
 from diffrax_vi.ansatz.dense import DenseNetBasis
 from diffrax_vi.oga import MirrorPairs
-from diffrax_vi.seeding.fit import FitProblem, fit_problem
+from diffrax_vi.parameter_seed import FitProblem, fit_problem
 from diffrax_vi.seeding.training import LSGD, TrainingMethod, box_layer, default_init_scale
+from tests.helpers import max_relative_error, solve_problem
 
 # ---------------------------------------------------------------------------------------------
 # The basis
@@ -125,7 +127,7 @@ def make_problem(dtype, modulated=False, n=10, basis=None):
 
 
 def fit(seed, basis, problem):
-    return jax.jit(lambda p: seed.fit(basis, p))(problem)
+    return jax.jit(lambda p: seed.parameters(basis, p))(problem)
 
 
 def curve(basis, theta, tau):
@@ -200,15 +202,15 @@ def test_low_precision_stays_in_dtype(seed, dtype):
 )
 def test_float32_fit_has_no_float64(seed):
     problem = make_problem(jnp.float32)
-    jaxpr = jax.make_jaxpr(lambda p: seed.fit(DENSE, p))(problem)
+    jaxpr = jax.make_jaxpr(lambda p: seed.parameters(DENSE, p))(problem)
     assert "f64" not in str(jaxpr)
 
 
 def test_training_method_reproducible_from_its_key():
     problem = make_problem(jnp.float64)
     seed = TrainingMethod(epochs=200, key=3)
-    first = jax.jit(lambda p: seed.fit(DENSE, p))(problem)
-    again = jax.jit(lambda p: TrainingMethod(epochs=200, key=3).fit(DENSE, p))(problem)
+    first = jax.jit(lambda p: seed.parameters(DENSE, p))(problem)
+    again = jax.jit(lambda p: TrainingMethod(epochs=200, key=3).parameters(DENSE, p))(problem)
     np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
     other = fit(TrainingMethod(epochs=200, key=4), DENSE, problem)
     assert not np.array_equal(np.asarray(first), np.asarray(other))
@@ -255,7 +257,7 @@ def test_unsupported_bases_refused(seed):
     with pytest.raises(ValueError, match="mirrored"):
         seed.check(mirrored)
     with pytest.raises(ValueError, match="mirrored"):
-        dvi.NetworkVI(mirrored, initial_guess=seed)
+        dvi.NetworkVI(mirrored, seed=dvi.SeedPolicy(initial_guess=seed))
     seed.check(DENSE)
     seed.check(dvi.ShallowNetBasis(dvi.tanh, 4))
 
@@ -286,29 +288,7 @@ def test_bad_hyperparameters_refused(make, message):
 # End to end
 
 
-def solve(problem, solver, dtype=jnp.float64, **kwargs):
-    ts = jnp.asarray(problem.ts, dtype)
-    run = eqx.filter_jit(
-        lambda y0: diffrax.diffeqsolve(
-            problem.term,
-            solver,
-            dtype(problem.t0),
-            dtype(problem.t1),
-            dtype(problem.dt),
-            y0,
-            args=problem.args,
-            saveat=diffrax.SaveAt(ts=ts, solver_state=True),
-            throw=False,
-            **kwargs,
-        )
-    )
-    return run(problem.y0)
-
-
-def max_relative_error(problem, sol):
-    q_ref, _ = problem.reference(np.asarray(sol.ts))
-    q = np.asarray(sol.ys[0], dtype=np.float64)
-    return float(np.max(np.max(np.abs(q - q_ref), axis=1) / np.max(np.abs(q_ref), axis=1)))
+solve = partial(solve_problem, dtype=jnp.float64, throw=False)
 
 
 def iterations(sol):
@@ -317,7 +297,8 @@ def iterations(sol):
 
 
 def dense_vi(seed):
-    return dvi.NetworkVI(DenseNetBasis(dvi.tanh, 8, 8), dvi.GaussLegendre(8), initial_guess=seed)
+    return dvi.NetworkVI(DenseNetBasis(dvi.tanh, 8, 8), dvi.GaussLegendre(8),
+                         seed=dvi.SeedPolicy(initial_guess=seed))
 
 
 def test_harmonic_oscillator_dense_lsgd():

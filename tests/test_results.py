@@ -1,6 +1,8 @@
 """Loud failures: every way a step's nonlinear solve can fail ends `diffeqsolve` with its own
 `diffrax.RESULTS` member, keeps the accepted steps, and says where and why it failed."""
 
+from functools import partial
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -11,6 +13,7 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.results import STEP_FAILURES
+from tests.helpers import motionless_cgvi
 
 TS = jnp.linspace(0.0, 0.3, 4)
 
@@ -22,12 +25,7 @@ def run(solver, term, y0, *, throw=False, args=None):
     )  # fmt: skip
 
 
-def cheap(**kwargs):
-    """A classical cGVI with a motionless seed: the failure paths are the same as for a
-    network, and it compiles in a fraction of the time."""
-    kwargs.setdefault("initial_guess", dvi.LeastSquaresFit())
-    kwargs.setdefault("initial_trajectory", dvi.NoExtrapolation(4))
-    return dvi.NetworkVI(dvi.LagrangeBasis(3), dvi.GaussLegendre(4), **kwargs)
+cheap = partial(motionless_cgvi, 3, 4)
 
 
 def rootless():

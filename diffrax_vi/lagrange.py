@@ -1,0 +1,40 @@
+"""Lagrange interpolation through fixed points on the step: the polynomial ansatz's basis
+and the dense output's reconstruction from the quadrature nodes."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+__all__ = ["lagrange_weights"]
+
+
+@functools.cache
+def _barycentric(points: tuple[float, ...]) -> np.ndarray:
+    x = np.asarray(points)
+    diff = x[:, None] - x[None, :]
+    np.fill_diagonal(diff, 1.0)
+    return 1.0 / np.prod(diff, axis=1)
+
+
+def lagrange_weights(points: tuple[float, ...], tau: Array) -> Array:
+    """Values at `tau` of the Lagrange basis polynomials through `points` (first-form formula,
+    exact at the points themselves)."""
+    dtype = jnp.result_type(tau)
+    x = jnp.asarray(points, dtype)
+    w = jnp.asarray(_barycentric(points), dtype)
+    diff = tau - x
+    n = len(points)
+    # ℓ_k(τ) = w_k Π_{m≠k} (τ − x_m): a product over the other points, no division by zero.
+    others = jnp.where(np.eye(n, dtype=bool), jnp.ones((), dtype), diff[None, :])
+    values = w * jnp.prod(others, axis=1)
+    # At a point the rounded weight times the product can miss 1 by an ulp, which would
+    # scale the state by 1 ± eps on every step (a linear energy drift): there the values are
+    # exactly one-hot, with the derivative of the formula (`v − stop_gradient(v)` is zero).
+    at = diff == 0
+    exact = jnp.where(jnp.any(at), at.astype(dtype), values)
+    return jax.lax.stop_gradient(exact) + (values - jax.lax.stop_gradient(values))

@@ -1,0 +1,94 @@
+"""The interface between `NetworkVI` and its root finder: what the solver knows about a
+step's equations beyond the residual function and the start.
+
+optimistix hands a root finder the caller's `options` dictionary untouched; `NetworkVI`
+puts one `StepHints` there, under the key `"step"`. A root finder that reads it derives from
+`AbstractStepRootFinder` and names the hints it uses in `hints_read`; it then gets every
+feature of the step that depends on them. Any other optimistix root finder still solves the
+step, without them (`missing_hints` says which, and the solver warns when it is given one).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import equinox as eqx
+import optimistix as optx
+
+__all__ = [
+    "HINT_FEATURES",
+    "AbstractStepRootFinder",
+    "StepHints",
+    "hints_of",
+    "missing_hints",
+    "step_options",
+]
+
+OPTIONS_KEY = "step"
+
+
+class StepHints(eqx.Module):
+    """What the solver tells its root finder about one step's system `F(y, args) = 0`.
+
+    - `scale`: the size of the residual's terms, `1 + max(|q_n|, |p_n|)`; tolerances are
+      relative to it.
+    - `outputs`: `y ↦` the step's results (`(q_{n+1}, p_{n+1})`): a solve may end where the
+      residual stopped falling but these no longer change.
+    - `jacobian`: `(y, args) ↦` the dense Jacobian of `F`, assembled by the formulation.
+    - `kinetic`: `(y, args) ↦` the inverse of the kinetic part of the Jacobian (the projected
+      step), for a fixed-point iteration.
+    - `restart`: `(first_try, start)`: a solve not converged after `first_try` iterations
+      starts once more from `start(args)`.
+    - `fallback`: `args ↦` a second starting point (a fresh seed fit), where a solve from the
+      given start fails; `fallback_usable(args)` says whether it may be used, and
+      `start_at_fallback(args)` makes the solve begin there instead.
+
+    Every hint is optional (`None`, or a `scale` of 1): a root finder must work without it.
+    """
+
+    scale: Any = 1.0
+    outputs: Callable | None = None
+    jacobian: Callable | None = None
+    kinetic: Callable | None = None
+    restart: tuple | None = None
+    fallback: Callable | None = None
+    fallback_usable: Callable | None = None
+    start_at_fallback: Callable | None = None
+
+
+# What a root finder that does not read a hint goes without, for `missing_hints` and the
+# solver's warning.
+HINT_FEATURES = {
+    "scale": "tolerances relative to the size of the state (it stops on its own tolerances)",
+    "outputs": "ending a solve whose residual sits at the rounding floor of a rank-deficient "
+    "system once the step's results have settled",
+    "jacobian": "the Jacobian assembled in closed form by the formulation",
+    "fallback": "a restart from a fresh seed fit where the solve from a carried seed fails",
+}
+
+
+def step_options(hints: StepHints) -> dict[str, StepHints]:
+    """The `options` of `optimistix.root_find` that carry `hints`."""
+    return {OPTIONS_KEY: hints}
+
+
+def hints_of(options: dict | None) -> StepHints:
+    """The hints in a root finder's `options` (empty hints where the caller gave none)."""
+    hints = (options or {}).get(OPTIONS_KEY)
+    return StepHints() if hints is None else hints
+
+
+class AbstractStepRootFinder(optx.AbstractRootFinder):
+    """An optimistix root finder that reads the solver's `StepHints` (`hints_of(options)`).
+    `hints_read` names the hints it uses."""
+
+    hints_read: ClassVar[frozenset[str]] = frozenset()
+
+
+def missing_hints(root_finder: optx.AbstractRootFinder) -> dict[str, str]:
+    """The features of `HINT_FEATURES` that `root_finder` goes without, by hint name."""
+    read = getattr(root_finder, "hints_read", frozenset())
+    if not isinstance(root_finder, AbstractStepRootFinder):
+        read = frozenset()
+    return {name: what for name, what in HINT_FEATURES.items() if name not in read}

@@ -1,0 +1,50 @@
+"""Damped least squares in the working precision (`diffrax_vi.linalg`)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+F64 = jnp.float64
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
+def test_damped_least_squares_solves_the_regularised_problem(dtype):
+    """`d = argmin ‖J d − r‖² + μ‖d‖²`, also for a singular `J`, against the normal equations
+    solved in float64, and in the dtype of the right-hand side."""
+    from diffrax_vi.linalg import damped_least_squares
+
+    rng = np.random.default_rng(3)
+    jac = rng.standard_normal((12, 12))
+    jac[:, -1] = jac[:, 0]  # rank-deficient, as the network steps are
+    rhs = rng.standard_normal(12)
+    mu = 1e-2
+    expected = np.linalg.solve(jac.T @ jac + mu * np.eye(12), jac.T @ rhs)
+    d = damped_least_squares(jnp.asarray(jac, dtype), jnp.asarray(rhs, dtype),
+                             jnp.sqrt(jnp.asarray(mu, dtype)))
+    assert d.dtype == dtype
+    eps = float(jnp.finfo(dtype).eps)
+    tol = 1e-10 if dtype == jnp.float64 else 300 * eps
+    np.testing.assert_allclose(np.asarray(d, np.float64), expected, rtol=0,
+                               atol=tol * np.max(np.abs(expected)))
+
+
+@pytest.mark.parametrize("rows", [30, 12, 5, 2])
+def test_damped_least_squares_takes_any_shape_and_several_right_hand_sides(rows):
+    """Tall, square and wide matrices (the seed fits are tall, the Newton steps square), and a
+    matrix of right-hand sides solved column by column, as the seed fits pass them (the
+    right-hand sides ride along as columns of the factorised matrix)."""
+    from diffrax_vi.linalg import damped_least_squares
+
+    rng = np.random.default_rng(4)
+    jac = rng.standard_normal((rows, 12))
+    rhs = rng.standard_normal((rows, 3))
+    mu = 0.3
+    normal = jac.T @ jac + mu * np.eye(12)
+    expected = np.linalg.solve(normal, jac.T @ rhs)
+    d = damped_least_squares(jnp.asarray(jac), jnp.asarray(rhs), jnp.sqrt(mu))
+    assert d.shape == (12, 3)
+    np.testing.assert_allclose(np.asarray(d), expected, rtol=0, atol=1e-12)
+    for j in range(3):
+        one = damped_least_squares(jnp.asarray(jac), jnp.asarray(rhs[:, j]), jnp.sqrt(mu))
+        assert one.shape == (12,)
+        np.testing.assert_allclose(np.asarray(one), expected[:, j], rtol=0, atol=1e-12)
