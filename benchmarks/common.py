@@ -8,6 +8,7 @@ share.
 from __future__ import annotations
 
 import argparse
+import inspect
 import pathlib
 import shlex
 import sys
@@ -44,7 +45,10 @@ def command_line(module: str, argv=None) -> str:
 PEERS = {"tsit5": diffrax.Tsit5, "dopri8": diffrax.Dopri8}
 """The adaptive diffrax solvers that `--peers NAME:RTOL` can name."""
 
-PROBLEM_NAMES = sorted(n for n in problems.__all__ if n[0].islower())
+PROBLEM_NAMES = sorted(
+    name for name in dir(problems)
+    if name[0].islower() and inspect.isfunction(getattr(problems, name))
+)
 """The problem constructors of `diffrax_vi.problems`, by name."""
 
 

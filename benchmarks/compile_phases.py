@@ -17,6 +17,7 @@ cache directory, so the first compiles and writes the cache and the others read 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import subprocess
@@ -41,11 +42,13 @@ NODES = {"harmonic_oscillator": 8, "double_pendulum": 16}
 def fixture_solve(problem_name: str, config: str, restart: bool = True, steps: int = 20, h=0.1):
     """The fixture's solve as a function of `y0` (not jitted), and the problem."""
     problem = getattr(problems, problem_name)(dtype=jnp.float64).with_span(n_steps=steps, dt=h)
+    options = dict(CONFIGS[config])
+    seed = dataclasses.replace(options.pop("seed", dvi.SeedPolicy()), restart_failed=restart)
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(dvi.tanh, 10),
         dvi.GaussLegendre(NODES.get(problem_name, 8)),
-        seed=dvi.SeedPolicy(restart_failed=restart),
-        **CONFIGS[config],
+        seed=seed,
+        **options,
     )
 
     def run(y0):

@@ -59,9 +59,8 @@ def compare(dims: int, repeats: int = 20, dict_amount: int = 4000):
     tau = np.linspace(0, 1, 33)
     y = np.stack([np.sin(0.3 * (k + 1) * tau) for k in range(dims)], axis=1)
     problem = fit_problem(jnp.asarray(y), False, basis.zeros(dims, jnp.float64), jnp.array(True))
-    config = dvi.OGA1d()
-    looped = jax.jit(lambda t: fit_network(basis, config, problem._replace(targets=t),
-                                           INTERVAL, dict_amount))
+    config = dvi.OGA1d(bias_interval=INTERVAL, dict_amount=dict_amount)
+    looped = jax.jit(lambda t: fit_network(basis, config, problem._replace(targets=t)))
     batched = jax.jit(lambda t: vmapped_fit(basis, config, problem._replace(targets=t),
                                             dict_amount))
     f_loop, r_loop, a = time_fit(looped, problem.targets, repeats)

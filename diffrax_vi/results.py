@@ -38,14 +38,23 @@ its report is that of the failed piece.
 
 from __future__ import annotations
 
+from typing import Any
+
 import diffrax
 import equinox as eqx
 import numpy as np
 import optimistix as optx
-from equinox import _enum  # the enumeration table; see `_register`
+
+# The one deliberate use of equinox's private enumeration tables: equinox has no public way
+# to add a member to an enumeration (`_register`) or to read a member's name and index
+# (`result_names`); every other module goes through these two functions.
+from equinox import _enum
 from jaxtyping import Array
 
-__all__ = ["StepReport", "failure_kind", "describe_failure", "from_root_find", "STEP_FAILURES"]
+__all__ = [
+    "StepReport", "failure_kind", "describe_failure", "from_root_find", "result_names",
+    "STEP_FAILURES",
+]
 
 _WHERE = (
     " The start time, length and residual of the failed step are in the solver state: "
@@ -165,18 +174,31 @@ def failure_kind(result) -> str | np.ndarray:
         )
     if result.is_traced():
         raise ValueError("failure_kind needs a concrete result (call it outside jit)")
-    names = {int(item._value): name for name, item in enumeration._name_to_item.items()}
 
-    def kind(index) -> str:
-        name = names[int(index)]
+    def kind(name: str) -> str:
         if name in ("successful", "event_occurred"):
             return "ok"
         return FAILURE_KINDS.get(name, "other")
 
+    names = result_names(result)
+    if names.ndim == 0:
+        return kind(str(names))
+    return np.vectorize(kind, otypes=[object])(names).astype(str)
+
+
+def result_names(result: Any) -> np.ndarray:
+    """The member names of a concrete `RESULTS` item (diffrax, optimistix, lineax): a string
+    array of the item's shape (a 0-d array for one solve)."""
+    enumeration = getattr(result, "_enumeration", None)
+    table = getattr(enumeration, "_name_to_item", None)
+    if table is None:
+        raise TypeError(f"expected a diffrax/optimistix/lineax RESULTS member, got {result!r}")
+    names = {int(np.asarray(item._value)): name for name, item in table.items()}
     value = np.asarray(result._value)
-    if value.ndim == 0:
-        return kind(value)
-    return np.vectorize(kind, otypes=[object])(value).astype(str)
+    unknown = set(np.unique(value).tolist()) - set(names)
+    if unknown:
+        raise ValueError(f"unknown result index {sorted(unknown)} of {enumeration.__name__}")
+    return np.vectorize(names.__getitem__, otypes=[object])(value).astype(str)
 
 
 class StepReport(eqx.Module):

@@ -304,60 +304,6 @@ def write_report(out: str, command: str = "", elapsed: float | None = None) -> s
     return text
 
 
-def _problem_names(study: str, chosen, full: bool = False) -> list[str]:
-    if study == "stability":
-        from .stability import quick_grid
-
-        names = list(dict.fromkeys(c.problem for c in quick_grid()))
-    else:
-        from .suites import SETTINGS
-
-        if study == "energy":
-            names = _energy_problems(None, full, SETTINGS)
-            return [n for n in SETTINGS if n in chosen] if chosen else names
-        names = list(SETTINGS)
-    return [n for n in names if not chosen or n in chosen]
-
-
-def _worker_argv(argv: list[str]) -> list[str]:
-    """The options every worker inherits: the given ones less command, --out, --problems,
-    --jobs (which each worker gets its own of)."""
-    out, skip = [], False
-    for a in argv[1:]:
-        if skip and a.startswith("--"):
-            skip = False
-        if skip:
-            continue
-        if a.split("=")[0] in ("--out", "--problems", "--jobs"):
-            skip = "=" not in a
-            continue
-        out.append(a)
-    return out
-
-
-def _cpu_slots(jobs: int) -> list[set[int] | None]:
-    """One set of CPUs per worker (`executor.cpu_slots`, which pins the embedded cluster's
-    workers)."""
-    from .executor import cpu_slots
-
-    return cpu_slots(jobs)
-
-
-def _spawn(cmd: list[str], cpus: set[int] | None, **kwargs):
-    """`subprocess.Popen(cmd)` restricted to `cpus`: the calling thread takes that affinity
-    for the spawn, which the child inherits, and gets its own back."""
-    import subprocess
-
-    if cpus is None:
-        return subprocess.Popen(cmd, **kwargs)
-    own = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, cpus)
-    try:
-        return subprocess.Popen(cmd, **kwargs)
-    finally:
-        os.sched_setaffinity(0, own)
-
-
 def _long_steps(text: str) -> dict[str, int]:
     out = {"default": 10_000}
     for item in text.split(","):

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..results import FAILURE_KINDS
+from ..results import FAILURE_KINDS, result_names
 
 __all__ = ["STATUSES", "RESULT_STATUS", "classify", "result_name", "converged"]
 
@@ -47,17 +47,10 @@ RESULT_STATUS: dict[str, str] = {
 
 def result_name(result: Any) -> str:
     """The member name of a concrete (not traced, not batched) `RESULTS` item."""
-    enumeration = getattr(result, "_enumeration", None)
-    table = getattr(enumeration, "_name_to_item", None)
-    if table is None:
-        raise TypeError(f"expected a diffrax/optimistix/lineax RESULTS member, got {result!r}")
-    value = np.asarray(result._value)
-    if value.ndim != 0:
-        raise ValueError(f"classify one solve at a time; got a batch of results {value.shape}")
-    for name, item in table.items():
-        if int(np.asarray(item._value)) == int(value):
-            return name
-    raise ValueError(f"unknown result index {int(value)} of {enumeration.__name__}")
+    names = result_names(result)
+    if names.ndim != 0:
+        raise ValueError(f"classify one solve at a time; got a batch of results {names.shape}")
+    return str(names)
 
 
 def _all_finite(tree) -> bool:
