@@ -392,3 +392,13 @@ def test_dense_net_constructor_defaults_to_lsgd_and_refuses_other_bases():
         dvi.DenseNet(B(dvi.tanh, 8), GL(8))
     with pytest.raises(ValueError, match="OGA seed fits shallow networks"):
         dvi.NetworkVI(dvi.DenseNetBasis(dvi.tanh, 8, 8), GL(8))
+
+
+def test_dictionary_keywords_go_to_the_oga_and_are_refused_elsewhere():
+    method = dvi.ShallowNet(dvi.ShallowNetBasis(dvi.tanh, 4), dvi.GaussLegendre(4),
+                            dict_amount=40, bias_interval=[-1, 1])
+    assert method.seed.initial_guess == dvi.OGA1d(dict_amount=40, bias_interval=(-1.0, 1.0))
+    with pytest.raises(TypeError, match="DenseNet: dict_amount configure the OGA's dictionary"):
+        dvi.DenseNet(dvi.DenseNetBasis(dvi.tanh, 4, 4), dvi.GaussLegendre(8), dict_amount=40)
+    with pytest.raises(ValueError, match="dict_amount must be a positive integer"):
+        dvi.ShallowNet(dvi.ShallowNetBasis(dvi.tanh, 4), dvi.GaussLegendre(4), dict_amount=0)

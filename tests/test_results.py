@@ -134,3 +134,16 @@ def test_successful_solve_reports_its_last_step():
     assert float(report.t) == pytest.approx(0.2)
     assert float(report.residual) <= 1e-8
     assert np.all(np.isfinite(np.asarray(sol.ys[0])))
+
+
+def test_result_names_of_one_result_and_of_a_batch():
+    from diffrax_vi.results import result_names
+
+    assert str(result_names(diffrax.RESULTS.successful)) == "successful"
+    stalled = STEP_FAILURES["vi_step_stalled"]
+    batch = jax.vmap(lambda ok: diffrax.RESULTS.where(ok, diffrax.RESULTS.successful, stalled))(
+        jnp.array([True, False]))
+    assert result_names(batch).tolist() == ["successful", "vi_step_stalled"]
+    assert dvi.failure_kind(batch).tolist() == ["ok", "stalled"]
+    with pytest.raises(TypeError, match="RESULTS member"):
+        result_names("successful")

@@ -107,3 +107,19 @@ def test_implicit_midpoint_iode_oscillator_matches_lagrangian():
     b = _midpoint(lag, 0.0, 1.0, [0.5], [0.3], 6)
     np.testing.assert_allclose(np.asarray(a[0]), np.asarray(b[0]), rtol=1e-14)
     np.testing.assert_allclose(np.asarray(a[1]), np.asarray(b[1]), rtol=1e-14)
+
+
+def test_with_substeps_keeps_every_other_option():
+    """The reference's `extrapolation_substep` changes the sub-steps only (it once dropped a
+    `PreviousStep`'s tolerance)."""
+    import diffrax_vi as dvi
+
+    warm = dvi.PreviousStep(first=dvi.HermiteExtrapolation(4), tolerance=1e-3)
+    changed = warm.with_substeps(12)
+    assert changed.tolerance == 1e-3
+    assert changed.first == dvi.HermiteExtrapolation(12)
+    assert dvi.IntegratorExtrapolation(4, 7).with_substeps(6) == dvi.IntegratorExtrapolation(6, 7)
+    assert dvi.NoExtrapolation(4).with_substeps(8) == dvi.NoExtrapolation(8)
+    method = dvi.ShallowNet(dvi.ShallowNetBasis(dvi.tanh, 4), dvi.GaussLegendre(4),
+                            initial_trajectory_method=warm, extrapolation_substep=12)
+    assert method.seed.initial_trajectory == changed
