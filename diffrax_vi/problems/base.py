@@ -3,7 +3,7 @@
 A problem bundles a mechanical term (`LagrangianTerm` or `IODETerm`), an initial state
 `y0 = (q0, p0)` in a chosen floating dtype, a default time span and step, an energy function for
 drift measurements and a float64 reference solution (closed form where one exists, otherwise a
-tight scipy DOP853 integration of Hamilton's equations).
+stored extended-precision solution or a tight scipy DOP853 integration of Hamilton's equations).
 """
 
 from __future__ import annotations
@@ -33,7 +33,10 @@ REFERENCE_ATOL = 1e-15
 class Problem:
     """A test problem for the mechanical solvers.
 
-    Every problem is autonomous, so the reference only depends on the time elapsed since `t0`.
+    The reference flow is handed the time elapsed since `t0`. For an autonomous problem that is
+    all it depends on; a problem whose Lagrangian depends on `t` explicitly (e.g.
+    `modulated_oscillator`) builds its flow for its own `t0`, so shifting the start changes
+    the reference (its stored data then no longer applies and scipy takes over).
 
     **Fields:**
 
@@ -49,12 +52,15 @@ class Problem:
     - `hamiltonian`: optional `H(t, q, p, args)`; `energy` uses it, else the term's own energy.
     - `reference_flow`: the exact (or DOP853) flow of the nominal float64 problem: a callable
       taking elapsed times `ts - t0` (float64 array of shape `(N,)`) and returning `(q, p)`, two
-      float64 numpy arrays of shape `(N, D)`. Use `reference` rather than calling it directly.
+      float64 numpy arrays of shape `(N, D)` (a time-dependent problem's flow knows its `t0`).
+      Use `reference` rather than calling it directly.
     - `reference_method`: `"closed form"` or `"DOP853"`, how the reference is obtained (or
       `"stored"` for a tabulated high-accuracy solution, see `problems.stored`).
     - `invariants`: optional conserved quantities, a mapping from name to `I(t, q, p, args)`
       (same signature as `hamiltonian`; the value may be a scalar or an array, e.g. an
-      angular-momentum vector). Empty for problems that only conserve their energy.
+      angular-momentum vector). Empty for problems that only conserve their energy. Adiabatic
+      invariants (only approximately conserved) are listed too where a problem says so in its
+      docstring, e.g. the oscillatory energy of `fermi_pasta_ulam`.
     """
 
     name: str
@@ -230,7 +236,9 @@ class DOP853Flow:
     **Arguments:**
 
     - `rhs`: `rhs(y) -> dy/dt` on the flat float64 state `y = concat(q, p)` (autonomous).
-    - `y0`: the flat float64 initial state.
+      A time-dependent system is made autonomous by appending the absolute time as a last
+      component: `y = concat(q, p, [t])`, `dt/dt = 1` (odd length; the flow returns `q`, `p`).
+    - `y0`: the flat float64 initial state (with the start time last in the augmented form).
     - `cache_size`: how many distinct time grids to memoise.
 
     Times before and after the start are integrated backwards and forwards from `y0`.
@@ -254,7 +262,7 @@ class DOP853Flow:
                 self._cache.popitem(last=False)
         else:
             self._cache.move_to_end(key)
-        return ys[:, : self.dim].copy(), ys[:, self.dim :].copy()
+        return ys[:, : self.dim].copy(), ys[:, self.dim : 2 * self.dim].copy()
 
     def _solve(self, tau: np.ndarray) -> np.ndarray:
         try:

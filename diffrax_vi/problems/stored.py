@@ -9,6 +9,11 @@ the requested times in NumPy. No scipy is needed at run time.
 
 Times outside the stored span, or a problem whose parameters or initial data differ from the
 stored ones, fall back to a `DOP853Flow` (scipy) of the same equations.
+
+A time-dependent problem (a Lagrangian with an explicit `t`) is stored as the autonomous system
+of the augmented state `concat(q, p, [t])` with `dt/dt = 1`: its checkpoints carry their
+absolute time, the extrapolation steps integrate the time exactly, and its stored data applies
+only to the start time it was generated for (`StoredFlow(..., t0=...)`).
 """
 
 from __future__ import annotations
@@ -29,6 +34,8 @@ GBS_SEQUENCE = (2, 4, 6, 8, 10, 12, 14, 16)
 
 def gbs_step(rhs: Callable[[np.ndarray], np.ndarray], y: np.ndarray, h: np.ndarray) -> np.ndarray:
     """One Gragg–Bulirsch–Stoer step of order 16 for an autonomous ODE `y' = rhs(y)`.
+
+    (A time-dependent ODE enters with the time as a last state component, see above.)
 
     Modified-midpoint solutions with `n = 2, 4, ..., 16` substeps are combined by
     Aitken–Neville extrapolation in `h²`. Vectorised: `y` has shape `(M, n)`, `h` shape `(M, 1)`
@@ -77,12 +84,17 @@ class StoredFlow:
 
     - `name`: the data set, `data/<name>.npz`.
     - `rhs`: the vectorised Hamiltonian vector field, `rhs(y) -> dy/dt` on float arrays of shape
-      `(..., 2D)` holding `concat(q, p)` (NumPy only, so it also runs in `np.longdouble`).
-    - `y0`: the flat float64 initial state of this problem.
+      `(..., 2D)` holding `concat(q, p)` (NumPy only, so it also runs in `np.longdouble`). With
+      `t0`, the field of the augmented state `concat(q, p, [t])`, shape `(..., 2D + 1)`, whose
+      last component (the absolute time) has derivative 1.
+    - `y0`: the flat float64 initial state `concat(q0, p0)` of this problem.
     - `key`: float64 vector of the problem's parameters; the stored data is used only when `y0`
-      and `key` equal the stored ones bit for bit.
+      and `key` (and `t0`) equal the stored ones bit for bit.
+    - `t0`: the start time of a time-dependent problem; `None` (default) for an autonomous one,
+      whose flow depends on the elapsed time only. Then `self.y0` is `concat(q0, p0, [t0])`.
 
-    The data holds `qp` (checkpoints, shape `(K + 1, 2D)`, at `tau = 0, spacing, ...`),
+    The data holds `qp` (checkpoints, shape `(K + 1, 2D)`, or `(K + 1, 2D + 1)` with the
+    absolute time last for a time-dependent problem, at `tau = 0, spacing, ...`),
     `spacing`, `hop_steps` (GBS steps per hop), `y0`, `key` and `verified_error` (the max-norm
     error of this flow measured by the generator against an extended-precision solution).
     """
@@ -93,15 +105,33 @@ class StoredFlow:
         rhs: Callable[[np.ndarray], np.ndarray],
         y0: np.ndarray,
         key: np.ndarray,
+        *,
+        t0: float | None = None,
     ):
         self.name = name
         self.rhs = rhs
-        self.y0 = np.array(y0, dtype=np.float64)
+        y0 = np.array(y0, dtype=np.float64)
+        self.dim = y0.shape[0] // 2
+        self.t0 = None if t0 is None else float(t0)
+        self.y0 = y0 if t0 is None else np.append(y0, self.t0)
         self.key = np.array(key, dtype=np.float64)
-        self.dim = self.y0.shape[0] // 2
         self.fallback = DOP853Flow(rhs, self.y0)
         self._data: dict[str, np.ndarray] | None = None
         self._loaded = False
+
+    @property
+    def time_dependent(self) -> bool:
+        """Whether the vector field depends on the time (the state is augmented by `t`)."""
+        return self.t0 is not None
+
+    def vector_field(self, t: float, y: np.ndarray) -> np.ndarray:
+        """Hamilton's equations `d concat(q, p)/dt` at the absolute time `t` (scipy's `fun(t, y)`
+        convention), for autonomous and time-dependent problems alike."""
+        y = np.asarray(y)
+        if not self.time_dependent:
+            return self.rhs(y)
+        t = np.broadcast_to(np.asarray(t, dtype=y.dtype), y.shape[:-1])[..., None]
+        return self.rhs(np.concatenate([y, t], axis=-1))[..., : 2 * self.dim]
 
     @property
     def data(self) -> dict[str, np.ndarray] | None:
@@ -136,15 +166,15 @@ class StoredFlow:
         if span is None:
             return self._fallback(tau, "no stored data matches its parameters and initial data")
         inside = (tau >= 0) & (tau <= span)
-        out = np.empty((tau.shape[0], 2 * self.dim), dtype=np.float64)
+        out = np.empty((tau.shape[0], self.y0.shape[0]), dtype=np.float64)
         if np.any(inside):
             out[inside] = self._interpolate(tau[inside])
         if not np.all(inside):
             q, p = self._fallback(
                 tau[~inside], f"times outside the stored span [0, {span}] (relative to t0)"
             )
-            out[~inside] = np.concatenate([q, p], axis=1)
-        return out[:, : self.dim], out[:, self.dim :]
+            out[~inside, : 2 * self.dim] = np.concatenate([q, p], axis=1)
+        return out[:, : self.dim], out[:, self.dim : 2 * self.dim]
 
     def _interpolate(self, tau: np.ndarray) -> np.ndarray:
         data = self.data
