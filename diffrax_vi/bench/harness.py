@@ -272,6 +272,12 @@ def _closed_form_rhs(problem: Problem) -> Callable | None:
 
 
 def numpy_rhs(problem: Problem) -> tuple[Callable, str]:
+    """Hamilton's equations `fun(t, y)` on the flat state `concat(q, p)` (scipy's convention)
+    and where they come from: the stored flow's NumPy field (which knows the time of a
+    time-dependent problem), a closed form, or the term itself under `jax.jit`."""
+    field = getattr(problem.reference_flow, "vector_field", None)
+    if field is not None:
+        return field, "numpy"
     rhs = getattr(problem.reference_flow, "rhs", None) or _closed_form_rhs(problem)
     if rhs is not None:
         return (lambda t, y: rhs(y)), "numpy"
