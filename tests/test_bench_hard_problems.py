@@ -82,6 +82,16 @@ def test_verdict_on_constructed_fronts():
     assert slack[f"{twin}, seed"]["linear_error_ratio"] < 100.0
 
 
+def test_a_success_far_off_the_solution_is_recorded_as_escaped():
+    configs = {"CGVI(8)": hp.cgvi(8)}
+    rows = [_row("CGVI(8)", 1.0, 3e16, problem="henon_heiles"),
+            _row("CGVI(8)", 2.0, 1e-9, problem="henon_heiles")]
+    marked = hp.annotate(rows, configs, hp.PROBLEMS)
+    assert [r["status"] for r in marked] == ["escaped", "ok"]
+    assert marked[1]["dof"] == 9 and marked[1]["family"] == "linear"
+    assert hp.front(marked) == [(2.0, 1e-9)]
+
+
 def test_tiny_run_records_rows_and_failures(tmp_path):
     """Two steps per period of the oscillator: CGVI(2) runs, and a CGVI(2) allowed one Newton
     iteration a step fails; both are rows, the failure with its status and no error."""
