@@ -6,8 +6,8 @@ and, where `diffrax_vi.problems` has them, the modulated-frequency oscillator, t
 particle in a non-uniform magnetic field and Fermi–Pasta–Ulam) every configuration runs on
 constant steps from well below the motion's shortest time scale up to several times it:
 
-- the linear front: `CGVI(s)` over degrees (the spectral choice of `SpectralCGVI` is one of
-  them at each step: the report names it) and steps (a smaller step is CGVI with sub-steps);
+- the linear front: `CGVI(s)` over degrees and steps (a smaller step is CGVI with sub-steps;
+  the report names the degree `SpectralCGVI` would choose at each step);
 - `NetworkVI` configurations: a shallow network (activation, width, Gauss–Legendre nodes) with
   its hidden layer fixed (`UniformLayer`, the default), taken from the first step's seed fit
   and then frozen (`FirstSeedLayer`), fitted on every step (`SeedLayer`), or solved for with
@@ -23,20 +23,29 @@ of freedom per step, the fronts and the 3x verdict:
 - a configuration's front is its Pareto front of (wall time, final error) over the `ok` runs;
 - the ratio at equal wall time is the largest `error_baseline(w) / error_config(w)`, and the
   ratio at equal error the largest `time_baseline(e) / time_config(e)`, both log-log
-  interpolated on the two fronts where their ranges overlap (no extrapolation);
+  interpolated on the two fronts where their ranges overlap; past the baseline's last run
+  (more time than its slowest, more error than its cheapest) that run bounds the baseline
+  and the ratio is an upper bound, which never makes a win; errors below `FLOOR` count as
+  `FLOOR`, and at equal wall time the baseline gets `SLACK` times the time (timing noise);
+- a solve that reports success with an error above the solution's size is `escaped`;
 - a network configuration "wins" against a baseline where either ratio is at least 3. The
   baselines: the linear front (all CGVI runs together), the frozen twin (for the adaptive
   configurations: the `UniformLayer` and `FirstSeedLayer` runs of the same activation, width
   and quadrature together, so that the adaptivity itself is measured against the better
   frozen layer), and the classical peers (for information).
 
-    .venv/bin/python -m benchmarks.hard_problems [--quick] [--out DIR] [--problems ...]
+    .venv/bin/python -m benchmarks.hard_problems [--quick | --full] [--out DIR]
+        [--problems ...] [--report-only]
+
+`--full` adds activations (tanh, gelu, sigmoid) and widths (6, 10 on 8 Gauss nodes, 16 on
+16), CGVI degrees 2 to 16, seven steps per problem, six tolerances and five repeats.
 
 Results (`--out`, default `benchmarks/results/hard_problems/`): `runs.csv` (one row per run),
-`references.csv`, `verdict.csv`, `report.md`, and per problem `<problem>_fronts.png` (final
+`verdict.csv` (the ratios), `report.md`, and per problem `<problem>_fronts.png` (final
 and energy error against wall time) and `<problem>_dof.png` (final error against degrees of
-freedom per step at the largest steps). The per-problem raw files of the engine are kept in
-`raw/` so that `--problems` reruns a subset and the report still covers every problem run.
+freedom per step at the largest steps). The engine's rows, the reference and the run time of
+each problem are kept in `raw/`, so that `--problems` reruns a subset and the report
+(`--report-only` rebuilds it) still covers every problem run.
 """
 
 from __future__ import annotations
