@@ -481,14 +481,28 @@ def plot_fronts(rows: Sequence[Mapping], problem: str, path: str, energy: bool =
     style = {"linear": ("s-", 1.2), "frozen": ("o--", 1.2), "adaptive": ("D-", 2.0),
              "peer": ("x:", 1.0)}
     rs = [r for r in rows if r["problem"] == problem]
+    solvers = list(dict.fromkeys(r["solver"] for r in rs))
+    many = len(solvers) > 12  # then each family's front is drawn, its members faintly
+    colours = {"linear": "C0", "frozen": "C2", "adaptive": "C3", "peer": "C7"}
     for ax, (key, label) in zip(axes.flat, keys, strict=True):
-        for solver in dict.fromkeys(r["solver"] for r in rs):
+        for solver in solvers:
             sel = [r for r in rs if r["solver"] == solver]
             pts = sorted((r["wall_s"], r[key]) for r in ok_rows(sel, key))
             if not pts:
                 continue
             marker, lw = style.get(sel[0]["family"], ("o-", 1.0))
-            ax.loglog(*zip(*pts, strict=True), marker, lw=lw, ms=4, label=solver)
+            if many:
+                ax.loglog(*zip(*pts, strict=True), marker, lw=0.6, ms=2, alpha=0.3,
+                          color=colours.get(sel[0]["family"], "k"))
+            else:
+                ax.loglog(*zip(*pts, strict=True), marker, lw=lw, ms=4, label=solver)
+        if many:
+            for family, colour in colours.items():
+                fam = front((r for r in rs if r["family"] == family), key)
+                if fam:
+                    ax.loglog(*zip(*fam, strict=True), style[family][0], color=colour, lw=2.2,
+                              ms=5, label=f"{family} (front of "
+                              f"{len({r['solver'] for r in rs if r['family'] == family})})")
         ax.set_xlabel("wall time after compilation [s]")
         ax.set_ylabel(label)
         ax.set_title(f"{problem}: {label.split(' (')[0]}", fontsize=10)
