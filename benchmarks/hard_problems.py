@@ -643,7 +643,8 @@ def write_report(out: str, *, command: str = "", elapsed: float | None = None,
     write_rows(vs, os.path.join(out, "verdict.csv"), columns=VERDICT_COLUMNS)
     parts = ["# Hard problems: where does a network ansatz win? (issue 31)", ""]
     if command:
-        parts += [f"Command: `{command}`", ""]
+        parts += [f"Command: `{command}`" + ("" if elapsed is not None else
+                                             " (the runs' own commands: table below)"), ""]
     if elapsed is not None:
         parts += [f"Wall time of this run: {elapsed:.0f} s ({elapsed / 60:.1f} min).", ""]
     else:
