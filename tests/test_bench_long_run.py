@@ -120,3 +120,13 @@ def test_long_runs_are_predicted_from_shorter_spans_and_fewer_steps():
     assert lr._predicted_wall(walls, fixed, 8, 100) == pytest.approx(4.0)  # 2x the steps
     assert lr._predicted_wall(walls, adaptive, 1e-12, 10_000) == pytest.approx(100.0)
     assert lr._predicted_wall(walls, adaptive, 1e-13, 100) is None
+
+
+def test_reference_of_a_time_dependent_problem_checks_against_scipy_at_the_absolute_time():
+    """Without a GBS step the reference is the problem's own, checked by scipy's DOP853 on the
+    field at the absolute time (the modulated oscillator's frequency depends on it)."""
+    from diffrax_vi.problems import modulated_oscillator
+
+    problem = modulated_oscillator(dtype=jnp.float64)
+    ref = lr.reference_end(problem, 25.0)
+    assert ref.error is not None and ref.error < 1e-11

@@ -287,9 +287,8 @@ def reference_end(problem: Problem, t1: float, step: float | None = None,
     from scipy.integrate import solve_ivp
 
     y0 = np.concatenate([np.asarray(x, np.float64) for x in problem.y0])
-    rhs = flow.rhs
-    tight = solve_ivp(lambda t, y: rhs(y), (0.0, tau), y0, method="DOP853", rtol=2.3e-14,
-                      atol=1e-16)
+    fun, _ = numpy_rhs(problem)  # at the absolute time: a time-dependent field needs it
+    tight = solve_ivp(fun, (problem.t0, t1), y0, method="DOP853", rtol=2.3e-14, atol=1e-16)
     error = relative_error(tight.y[:d, -1], q64) if tight.success else None
     return Reference(q64, f"the problem's own ({problem.reference_method})", error, 0.0,
                      time.perf_counter() - start)
