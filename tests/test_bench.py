@@ -606,6 +606,20 @@ def test_root_existence_script_reports_each_seed(capsys):
         module.main(["harmonic_oscillator", "tanh", "10", "8", "--dts", "0"])
 
 
+def test_root_continuation_script_follows_a_short_root_to_a_longer_step():
+    """benchmarks.root_continuation: from h = 0.05 the pendulum's first-step root is followed
+    to h = 1, every accepted solve a root with the error of a short step, and the lengths
+    grow; a start beyond the target is refused."""
+    module = benchmark_script("root_continuation")
+    rows, reached, solves = module.follow("pendulum", "tanh", 1.0, lengths=6)
+    assert reached == 1.0 and solves >= len(rows) + 1
+    hs = [h for h, *_ in rows]
+    assert hs == sorted(hs) and hs[-1] == 1.0
+    assert all(residual < 1e-12 and error < 1e-6 for _, _, residual, error in rows)
+    with pytest.raises(SystemExit):
+        module.main(["pendulum", "tanh", "--start", "2", "--target", "1"])
+
+
 def test_pendulum_constraint_script_measures_p2_and_projects_it():
     """benchmarks.pendulum_constraint: its compiled step loop carries p₂ (nonzero after a
     network step), and the projection sets it to zero after every step."""
