@@ -57,6 +57,24 @@ def solve_adaptive(problem, solver, rtol, atol, ts=None):
     return sol.ys
 
 
+def check_stored_data(problem, accuracy, max_bytes):
+    """A problem's stored reference is the one shipped for it: it matches the default problem,
+    covers its span, was verified to `accuracy` by the generator, stays under `max_bytes`, and
+    starts at `(q0, p0)` (a time-dependent problem's checkpoints carry the time after them)."""
+    from diffrax_vi.problems import StoredFlow
+    from diffrax_vi.problems.stored import load_reference_data
+
+    flow = problem.reference_flow
+    assert isinstance(flow, StoredFlow) and problem.reference_method == "stored"
+    assert flow.data is not None, "the stored data does not match the default problem"
+    assert abs(flow.span - (problem.t1 - problem.t0)) <= 1e-6 * abs(problem.t1 - problem.t0)
+    assert flow.verified_error < accuracy
+    data = load_reference_data(problem.name)
+    assert data["qp"].nbytes < max_bytes
+    y0 = np.concatenate([np.asarray(x) for x in problem.y0])
+    np.testing.assert_array_equal(data["qp"][0, : 2 * problem.dim], y0)
+
+
 def max_relative_error(problem, sol):
     """Max over saved times of max|q − q_ref| / max|q_ref| (per time)."""
     ts = np.asarray(sol.ts)

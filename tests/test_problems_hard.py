@@ -16,12 +16,11 @@ import pytest  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi.problems import (  # noqa: E402
-    StoredFlow,
     charged_particle,
     fermi_pasta_ulam,
     modulated_oscillator,
 )
-from diffrax_vi.problems.stored import load_reference_data  # noqa: E402
+from tests.helpers import check_stored_data  # noqa: E402
 
 FACTORIES = [modulated_oscillator, charged_particle, fermi_pasta_ulam]
 # max-norm accuracy of the stored flows over (q, p): what the generator verified, with a margin
@@ -69,15 +68,7 @@ def _dop853_from_term(problem, tau):
 @pytest.mark.parametrize("factory", FACTORIES)
 def test_stored_data_present_and_small(factory):
     problem = factory(dtype=jnp.float64)
-    flow = problem.reference_flow
-    assert isinstance(flow, StoredFlow) and problem.reference_method == "stored"
-    assert flow.data is not None, "the stored data does not match the default problem"
-    assert flow.span == pytest.approx(problem.t1 - problem.t0)
-    assert flow.verified_error < STORED_ACCURACY[problem.name]
-    data = load_reference_data(problem.name)
-    assert data["qp"].nbytes < 200_000
-    y0 = np.concatenate([np.asarray(x) for x in problem.y0])
-    np.testing.assert_array_equal(data["qp"][0, : 2 * problem.dim], y0)
+    check_stored_data(problem, STORED_ACCURACY[problem.name], max_bytes=200_000)
 
 
 @pytest.mark.parametrize("factory", FACTORIES)

@@ -15,7 +15,6 @@ import pytest  # noqa: E402
 
 from diffrax_vi.problems import (  # noqa: E402
     Problem,
-    StoredFlow,
     coupled_oscillators,
     double_pendulum,
     henon_heiles,
@@ -26,9 +25,8 @@ from diffrax_vi.problems import (  # noqa: E402
     toda_lattice,
 )
 from diffrax_vi.problems.kepler import solve_kepler_equation  # noqa: E402
-from diffrax_vi.problems.stored import load_reference_data  # noqa: E402
 from diffrax_vi.problems.toda_lattice import bump_initial_condition  # noqa: E402
-from tests.helpers import solve_adaptive  # noqa: E402
+from tests.helpers import check_stored_data, solve_adaptive  # noqa: E402
 
 FACTORIES = [toda_lattice, henon_heiles, perturbed_pendulum, outer_solar_system, kepler]
 STORED = [
@@ -156,15 +154,7 @@ def test_term_energy_and_velocity_match(factory):
 @pytest.mark.parametrize("factory", STORED)
 def test_stored_data_present_and_small(factory):
     problem = factory(dtype=jnp.float64)
-    flow = problem.reference_flow
-    assert isinstance(flow, StoredFlow) and problem.reference_method == "stored"
-    assert flow.data is not None, "the stored data does not match the default problem"
-    assert flow.span == pytest.approx(problem.t1 - problem.t0)
-    assert flow.verified_error < STORED_ACCURACY[problem.name]
-    data = load_reference_data(problem.name)
-    assert data["qp"].nbytes < 100_000
-    y0 = np.concatenate([np.asarray(x) for x in problem.y0])
-    np.testing.assert_array_equal(data["qp"][0], y0)
+    check_stored_data(problem, STORED_ACCURACY[problem.name], max_bytes=100_000)
 
 
 @pytest.mark.parametrize("factory", STORED)
