@@ -16,9 +16,13 @@
    uses the Jacobian at the previous step's root (what a solver state holding it would do).
 5. The kinetic matrix (`matrix="kinetic"`) against the Jacobian, on the three problems and the
    outer solar system (18 coordinates).
+6. Round-off by prediction (`--only predict`): the chord iteration stopped once the
+   contraction of its updates predicts what is left far below one rounding unit
+   (`predict=True`), against `ftol=0` and Newton, on the three problems.
 
     taskset -c 1 .venv/bin/python -m benchmarks.fixed_point \\
-        [--only cost|profile|hard|reuse|kinetic] [--repeats 5] > benchmarks/results/fixed_point.txt
+        [--only cost|profile|hard|reuse|kinetic|predict] [--repeats 5] \\
+        > benchmarks/results/fixed_point.txt
 """
 
 from __future__ import annotations
@@ -404,10 +408,45 @@ def kinetic(repeats: int) -> None:
                   f"{us[name] / us['Dopri8']:.2f} | {iters} | {diff} |", flush=True)
 
 
+def predict(repeats: int) -> None:
+    """Round-off by prediction (`FixedPointIteration(predict=True)`): the chord iteration run
+    until the contraction of its updates predicts a remaining error far below one rounding
+    unit, against running it until the updates stop shrinking (`ftol=0`) and against Newton;
+    microseconds per constant `CGVI(6)` step after compiling (interleaved runs), iterations
+    per step and the final position error against the problem's reference."""
+    print(f"\nround-off by prediction: CGVI(6), us per step (median of {repeats} interleaved "
+          "runs; ratio to Dopri8), iterations per step, final position error")
+    solves = {
+        "Newton, ftol 0": dvi.RoundoffNewton(ftol=0.0),
+        "chord (LU), ftol 0": FixedPointIteration(ftol=0.0, inverse=False),
+        "chord (LU), ftol 0, predict": FixedPointIteration(ftol=0.0, inverse=False,
+                                                           predict=True),
+        "chord (inverse), ftol 0, predict": FixedPointIteration(ftol=0.0, predict=True),
+        "CGVI(6) default (Newton, ftol 1, confirm)": None,
+    }
+    print("| problem | solver | us per step | / Dopri8 | iterations per step | final error |")
+    print("|---|---|---|---|---|---|")
+    for label, (make, kwargs, h, n) in CASES.items():
+        problem = make(**kwargs)
+        steps = {"Dopri8": diffrax.Dopri8()}
+        steps.update({name: dvi.CGVI(6) if rf is None else dvi.CGVI(6, root_finder=rf)
+                      for name, rf in solves.items()})
+        runs = {name: _runner(problem, solver, h, n) for name, solver in steps.items()}
+        us = _interleaved_us(runs, problem.y0, n, repeats)
+        q_ref, _ = problem.reference(np.array([n * h]))
+        for name, run in runs.items():
+            q, ok, its = run(problem.y0)
+            err = float(np.max(np.abs(np.asarray(q) - q_ref[-1])) / np.max(np.abs(q_ref[-1])))
+            iters = "-" if name == "Dopri8" else f"{int(its) / n:.2f}"
+            status = "" if bool(ok) else " (failed)"
+            print(f"| {label} | {name}{status} | {us[name]:.1f} | "
+                  f"{us[name] / us['Dopri8']:.2f} | {iters} | {err:.1e} |", flush=True)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=("cost", "profile", "hard", "reuse", "kinetic"),
-                        default=None)
+    parser.add_argument("--only", choices=("cost", "profile", "hard", "reuse", "kinetic",
+                                           "predict"), default=None)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
     if args.only in (None, "cost"):
@@ -420,6 +459,8 @@ def main(argv=None) -> None:
         reuse()
     if args.only in (None, "kinetic"):
         kinetic(args.repeats)
+    if args.only in (None, "predict"):
+        predict(args.repeats)
 
 
 if __name__ == "__main__":

@@ -36,6 +36,11 @@ from diffrax_vi.bench.stability import PROBLEMS, QUICK_NODES, QUICK_WIDTH, Stabi
 from diffrax_vi.step_solve import solve_projected  # noqa: E402
 
 
+def projected_start(solver, ctx, curve, p1):
+    """The projected step's start from a curve and an end momentum (`solve_projected`)."""
+    return lambda span: solver.formulation.start(curve, p1, span, ctx)
+
+
 def follow(problem_name: str, activation: str, target: float, *, start: float = 0.05,
            lengths: int = 40, max_solves: int = 400):
     """Continuation from `start` to `target`; returns the rows `(h, iterations, residual,
@@ -55,14 +60,17 @@ def follow(problem_name: str, activation: str, target: float, *, start: float = 
         def stretched(tau):
             return solver.basis.evaluate(theta, tau * h / h_prev)
 
-        return solve_projected(solver, ctx, hidden, stretched, p1)
+        return solve_projected(solver, ctx, hidden, projected_start(solver, ctx, stretched, p1))
 
     @jax.jit
     def first(h):
         ctx = solver.step_context(term, t0, t0 + h, y0, problem.args)
-        return solve_projected(solver, ctx, hidden, lambda tau: y0[0], y0[1])
+        return solve_projected(
+            solver, ctx, hidden, projected_start(solver, ctx, lambda tau: y0[0], y0[1])
+        )
 
-    theta, (_, dp), _, result, *_ = first(jnp.asarray(start))
+    solved = first(jnp.asarray(start))
+    theta, (_, dp), result = solved.theta, solved.increments, solved.result
     if result != diffrax.RESULTS.successful:
         return [], 0.0, 1
     rows, h_prev, p1 = [], start, y0[1] + dp
@@ -71,7 +79,9 @@ def follow(problem_name: str, activation: str, target: float, *, start: float = 
     while h_prev < target and solves < max_solves and ratio > 1 + 1e-4:
         h = min(h_prev * ratio, target)
         out = solve(jnp.asarray(h), theta, jnp.asarray(h_prev), p1)
-        theta_new, (dq, dp), n, result, residual, *_ = out
+        theta_new, (dq, dp), n, result, residual = (
+            out.theta, out.increments, out.iterations, out.result, out.residual
+        )
         solves += 1
         if result != diffrax.RESULTS.successful:
             ratio = ratio**0.5

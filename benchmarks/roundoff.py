@@ -290,6 +290,7 @@ def bias_configs():
         "chord, ftol 1, without confirm": dict(root_finder=fp(ftol=1.0, confirm=False)),
         "chord, ftol 1": dict(root_finder=fp(ftol=1.0)),
         "chord, ftol 0": dict(root_finder=fp(ftol=0.0)),
+        "chord, ftol 0, predict": dict(root_finder=fp(ftol=0.0, predict=True)),
         "kinetic, ftol 0": dict(root_finder=fp(ftol=0.0, matrix="kinetic")),
         "NetworkVI (tanh 10, GL8): default (ftol 64, without confirm)": dict(network=True),
         "NetworkVI: ftol 64, confirm": dict(network=True, root_finder=rf(ftol=64.0)),

@@ -30,6 +30,11 @@ from .step_hints import hints_of
 
 __all__ = ["FixedPointIteration"]
 
+# `predict` stops once the remaining error is below 1/PREDICT_MARGIN of a rounding unit of the
+# unknowns: small against the rounding of a step (about 0.4 eps of energy), so that what the
+# iteration leaves behind cannot build up to a drift.
+PREDICT_MARGIN = 1024
+
 
 class _ChordState(NewtonState):
     factors: tuple[Array, ...]
@@ -72,7 +77,9 @@ class FixedPointIteration(RoundoffNewton):
     Stopping rules are those of `RoundoffNewton`: converged at `max|F| ≤ ftol · eps · scale`
     after an update within `√eps` of the unknowns (`confirm`), or at round-off once
     `max|F| ≤ floor · eps · scale` and the update has stopped shrinking (`ftol=0` runs every
-    solve there). Every solve makes at least one update. There is no line
+    solve there); and one more (`predict`): at round-off once the contraction of the
+    updates predicts that what is left is far below one rounding unit of the unknowns.
+    Every solve makes at least one update. There is no line
     search: each update is taken. An iteration far from the root (above `floor`) whose
     residual does not fall, or whose update is no smaller than the one before, is a stall;
     `max_stalls` stalls in a row end the solve as `nonlinear_divergence`, a non-finite
@@ -110,6 +117,12 @@ class FixedPointIteration(RoundoffNewton):
       Give it `ftol=0`: a linearly converging iteration stopped at a tolerance leaves an
       error of about that tolerance that is a fixed function of the state, a bias that
       `confirm` cannot remove, and the energy drifts (see the benchmarks page).
+    - `predict`: also converge once the contraction factor `θ` (the larger of the last two
+      ratios of successive updates) predicts a remaining error `θ/(1 − θ)·max|Δz|` below
+      `1/1024` of a rounding unit of the unknowns, with the residual within `floor`: the
+      round-off limit without the updates that only confirm it (with `ftol=0`, a solve to
+      round-off in about half the updates; the benchmarks page). Never after the first
+      update. Default `False`.
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 
@@ -122,12 +135,14 @@ class FixedPointIteration(RoundoffNewton):
     refresh: float | None = eqx.field(static=True, default=None)
     inverse: bool = eqx.field(static=True, default=True)
     matrix: str = eqx.field(static=True, default="jacobian")
+    predict: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.matrix not in ("jacobian", "kinetic"):
             raise ValueError(f"matrix must be 'jacobian' or 'kinetic', got {self.matrix!r}")
-        if not isinstance(self.inverse, bool):
-            raise TypeError(f"inverse must be True or False, got {self.inverse!r}")
+        for name in ("inverse", "predict"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.refresh is not None and not (
             isinstance(self.refresh, int | float) and not isinstance(self.refresh, bool)
             and 0 < self.refresh < 1
@@ -238,6 +253,21 @@ class FixedPointIteration(RoundoffNewton):
         converged = fmax_new <= self._tolerance("ftol", dtype) * scale
         if self.confirm:
             converged = converged & self._confirmed(norm, new, dtype)
+        if self.predict:
+            # A linear iteration's remaining error is about `θ/(1 − θ)` times its last update
+            # (θ the contraction factor). It is a fixed function of the step's start, the
+            # same from step to step: stop only once it is far below one rounding unit of
+            # the unknowns (`PREDICT_MARGIN`), or it would add up to a drift over a long run.
+            # θ is the larger of the last two ratios of updates: from a poor start the
+            # update after Newton's first can shrink far more than the iteration's rate.
+            rate = jnp.maximum(contraction, state.contraction)
+            slowing = known & (rate < 1)
+            remaining = rate / jnp.where(slowing, 1 - rate, 1) * norm
+            eps = float(jnp.finfo(dtype).eps)
+            converged = converged | (
+                slowing & (fmax_new <= floor)
+                & (remaining <= eps / PREDICT_MARGIN * jnp.max(jnp.abs(new)))
+            )
         # Rounding has taken over once an update near the root is no smaller than the one
         # before it.
         at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)

@@ -409,6 +409,11 @@ class VariableProjection(FreeEndpoints):
         (`(k, D)`; pinned directions: `δc = 0`) and continuity `q_h(0) = q_n`. Along the
         constant direction the equation is `Δp = h Σ_j b_j f_j`, so `Δp` is solved to the
         rounding of its own size."""
+        return self.reduced_residual_and_forces(z, args)[0]
+
+    def reduced_residual_and_forces(self, z, args) -> tuple[tuple[Array, Array], Array]:
+        """`reduced_residual` and the forces `∂L/∂q` at the nodes (`(R, D)`) it evaluated
+        on the way: the step's dense output reads them at the converged `z`."""
         ctx, span = args[0], args[1]
         dc, dp = z
         q, dq = self.node_values(dc, span, ctx.q0)
@@ -424,7 +429,7 @@ class VariableProjection(FreeEndpoints):
             )
         r = dp * span.g0.T + dp * span.gd.T + ctx.p0 * span.gd.T - forces - momenta
         r = jnp.where(span.live, r, dc)
-        return r, -jnp.einsum("dk,kd->d", span.g0, dc)
+        return (r, -jnp.einsum("dk,kd->d", span.g0, dc)), f
 
     def _at_nodes(self, z, args):
         """What the Jacobians of the reduced residual start from: the step context, the

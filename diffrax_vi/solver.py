@@ -242,10 +242,16 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         seeding = self.seeder
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
+        forces = None
         if isinstance(self.formulation, VariableProjection):
-            theta, (dq, dp), n, result, residual, tolerance, restarted = solve_projected(
+            solved = solve_projected(
                 self, ctx, *seed.start, restart_history=seed.restart_history
             )
+            theta, (dq, dp), n, result, residual, tolerance, restarted = (
+                solved.theta, solved.increments, solved.iterations, solved.result,
+                solved.residual, solved.tolerance, solved.restarted,
+            )
+            forces = solved.forces
             if self.compensated:
                 (q1, eq), (p1, ep) = (
                     compensated_add(x, d, e)
@@ -273,16 +279,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             _, violation = end_on_constraint(ctx, q1, p1, correct=False)
         return self._finish_step(
             ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-            compensation, violation,
+            compensation, violation, forces,
         )
 
     def _finish_step(
         self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-        compensation, violation,
+        compensation, violation, forces=None,
     ):
         """Failure results, dense output, the new solver state (the seed policy's record
         accepts the step). `violation` is the end state's distance from the primary
-        constraint (`end_on_constraint`)."""
+        constraint (`end_on_constraint`); `forces`, the forces at the nodes of the converged
+        curve where the solve has them (else they are evaluated here)."""
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         result = diffrax.RESULTS.where(
             finite | (result != diffrax.RESULTS.successful),
@@ -323,8 +330,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         def curve(tau):
             return self.formulation.position(ctx.basis, theta, ctx.q0, q1, tau)
 
-        q_nodes, dq_nodes = stage_values(curve, ctx.nodes)
-        _, f_nodes = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
+        if forces is None:
+            q_nodes, dq_nodes = stage_values(curve, ctx.nodes)
+            _, forces = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
+        f_nodes = forces
         dense_info = dict(
             theta=theta,
             q0=ctx.q0,

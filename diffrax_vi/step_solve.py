@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,8 +34,8 @@ from .seeding.policy import residual_scale as _residual_scale
 from .step_hints import StepHints, step_options
 
 __all__ = [
-    "FIRST_TRY", "companion_error", "jacobian_option", "projected_root_find", "solve_all",
-    "solve_projected",
+    "FIRST_TRY", "ProjectedSolve", "companion_error", "jacobian_option",
+    "projected_root_find", "solve_all", "solve_projected",
 ]
 
 # Iterations the projected step allows its start from the previous curve continued before it
@@ -42,19 +43,41 @@ __all__ = [
 FIRST_TRY = 16
 
 
-def solve_projected(vi: Any, ctx: StepContext, hidden, curve, p1_start,
-                    restart_history=None):
+class ProjectedSolve(NamedTuple):
+    """How a projected step's solve ended (`solve_projected`).
+
+    - `theta`: the converged curve as ansatz parameters;
+    - `unknowns`: the solution `z = (δc, Δp)` in the span's increment coordinates;
+    - `increments`: `(q_{n+1} − q_n, Δp)`, each to the rounding of its own size;
+    - `forces`: `∂L/∂q` at the nodes of the converged curve (`(R, D)`), for dense output;
+    - `iterations`, `result`, `residual` (final `max|F|`), `tolerance` (the residual it had
+      to reach), `restarted` (whether it restarted from the trajectory seed).
+    """
+
+    theta: Any
+    unknowns: tuple[Array, Array]
+    increments: tuple[Array, Array]
+    forces: Array
+    iterations: Array
+    result: Any
+    residual: Array
+    tolerance: Array
+    restarted: Array
+
+
+def solve_projected(vi: Any, ctx: StepContext, hidden, start: Callable,
+                    restart_history=None) -> ProjectedSolve:
     """The step's equations on the feature span of the hidden layer of the parameters
-    `hidden`, from the curve `τ ↦ curve(τ)` projected on it and `p1_start`.
+    `hidden`, from the unknowns `start(span)` (the seed policy's start: a curve projected
+    on the span).
 
     Given `restart_history` (the steps that start from the previous curve continued), a start
     that has not converged within `FIRST_TRY` iterations is given up for the trajectory seed of
     `initial_trajectory` (its labels, piecewise linear in `τ`) projected on the span; the
-    iteration cap covers both tries. Returns the parameters, the increments `(Δq, Δp)`, the
-    iterations, the result, the final residual and its tolerance, and whether it restarted."""
+    iteration cap covers both tries."""
     form = vi.formulation
     span = form.span(hidden, ctx)
-    z0 = jax.lax.stop_gradient(form.start(curve, p1_start, span, ctx))
+    z0 = jax.lax.stop_gradient(start(span))
     cap = vi.root_find_max_steps
     restart = None
     if restart_history is not None and cap > FIRST_TRY:
@@ -62,11 +85,11 @@ def solve_projected(vi: Any, ctx: StepContext, hidden, curve, p1_start,
         # needs it, and under vmap only if some member does.
         seeding = vi.seeder
 
-        def start(args):
+        def restart_start(args):
             ctx, span, history = args
             return seeding.restart_point(ctx, span, history)
 
-        restart = (FIRST_TRY, start)
+        restart = (FIRST_TRY, restart_start)
     sol = projected_root_find(vi, ctx, span, z0, cap, restart, restart_history)
     z, f, n = sol.value, sol.state.f, jnp.asarray(sol.stats["num_steps"], jnp.int32)
     restarted = jnp.asarray(getattr(sol.state, "restarted", False))
@@ -76,14 +99,17 @@ def solve_projected(vi: Any, ctx: StepContext, hidden, curve, p1_start,
     residual = jax.lax.stop_gradient(jnp.max(jnp.abs(f)).astype(dtype))
     eps = float(jnp.finfo(dtype).eps)
     tolerance = (vi.root_finder.ftol * eps * _residual_scale(ctx)).astype(dtype)
-    return theta, increments, n, from_root_find(sol.result), residual, tolerance, restarted
+    forces = jax.lax.stop_gradient(sol.aux).astype(ctx.p0.dtype)
+    return ProjectedSolve(theta, z, increments, forces, n, from_root_find(sol.result),
+                          residual, tolerance, restarted)
 
 
 def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, restart=None,
                         history=None):
     """`optimistix.root_find` of the projected step's equations on `span` from `z0`, with the
     options the solver hands its root finder (residual scale, Jacobian, kinetic matrix, and
-    the restart `(first_try, start)` where given)."""
+    the restart `(first_try, start)` where given). Its `aux` is the forces at the nodes of
+    the final iterate."""
     form = vi.formulation
     hints = StepHints(
         scale=_residual_scale(ctx),
@@ -92,8 +118,8 @@ def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, res
         restart=restart,
     )
     return optx.root_find(
-        form.reduced_residual, vi.root_finder, z0, (ctx, span, history),
-        options=step_options(hints),
+        form.reduced_residual_and_forces, vi.root_finder, z0, (ctx, span, history),
+        options=step_options(hints), has_aux=True,
         max_steps=max_steps, adjoint=vi.adjoint, throw=False,
     )
 

@@ -126,9 +126,10 @@ class SeedRecord(eqx.Module):
 class Seed(NamedTuple):
     """A step's start, as the policy chose it.
 
-    - `start`: the all-parameter unknowns; for `VariableProjection`, `(hidden, curve, p1)`:
-      the parameters whose hidden layer spans the step, the curve projected on that span as
-      the start, and the start of `p_{n+1}`.
+    - `start`: the all-parameter unknowns; for `VariableProjection`, `(hidden, start)`: the
+      parameters whose hidden layer spans the step, and the function of the span that gives
+      the solve's start (`step_solve.curve_start`: a curve projected on the span and the
+      start of `p_{n+1}`).
     - `warm`, `refitted`: whether the start carries the previous step's curve continued, or
       its neurons with refitted output weights (the solver counts both).
     - `cold_inputs`, `fit_inputs`: what the root finder's fallback (the fresh fit) is computed
@@ -231,8 +232,9 @@ class Seeder(eqx.Module):
                 ctx, *cold_inputs, lazy=self.lazy, refit_ok=refit_ok
             )
         if projected:  # `SeedLayer`: the span of this step's own seed
-            start = (seed[0], functools.partial(ctx.basis.evaluate, seed[0]), seed[1])
-            return Seed(start, warm_used, refitted)
+            start = self._projected_start(ctx, functools.partial(ctx.basis.evaluate, seed[0]),
+                                          seed[1])
+            return Seed((seed[0], start), warm_used, refitted)
         return Seed(seed, warm_used, refitted, cold_inputs, fit_inputs)
 
     def _carried_layer_seed(self, ctx: StepContext, record: SeedRecord, rule, cold_inputs):
@@ -250,15 +252,22 @@ class Seeder(eqx.Module):
                     hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
                 else:  # a linear ansatz: its span has no hidden layer to choose
                     hidden = ctx.basis.zeros(dim, ctx.q0.dtype)
-            start = self._continued_or_constant(ctx, record, warm)
+            start = self._projected_start(ctx, *self._continued_or_constant(ctx, record, warm))
         else:
             seed = jax.lax.cond(
                 record.fresh, lambda: self.cold_seed(ctx, *cold_inputs)[0], lambda: warm
             )
             hidden = jnp.where(record.fresh, seed[0], record.theta)
-            start = (functools.partial(ctx.basis.evaluate, seed[0]), seed[1])
+            start = self._projected_start(
+                ctx, functools.partial(ctx.basis.evaluate, seed[0]), seed[1]
+            )
         warm_used = ~record.fresh
-        return Seed((hidden, *start), warm_used, jnp.array(False), restart_history=record.history)
+        return Seed((hidden, start), warm_used, jnp.array(False), restart_history=record.history)
+
+    def _projected_start(self, ctx: StepContext, curve, p1):
+        """The projected step's start as `solve_projected` takes it: the curve projected on
+        the step's span, with `p1` the start of `p_{n+1}`."""
+        return lambda span: self.formulation.start(curve, p1, span, ctx)
 
     def _continued_or_constant(self, ctx: StepContext, record: SeedRecord, warm):
         """The start of a projected step: the previous step's curve continued, or on the
