@@ -264,8 +264,61 @@ def test_is_accepted_where_newton_is_and_checks_its_settings():
         FixedPointIteration(refresh=0)
     with pytest.raises(TypeError, match="inverse"):
         FixedPointIteration(inverse=1)
+    with pytest.raises(TypeError, match="predict"):
+        FixedPointIteration(predict="yes")
     with pytest.raises(ValueError, match="ftol"):  # the parent's checks still run
         FixedPointIteration(ftol=-1)
+
+
+# -- round-off by prediction ---------------------------------------------------------------------
+@pytest.mark.parametrize("name", list(SHORT))
+def test_predict_reaches_round_off_in_fewer_updates(name):
+    # From a start 1e-3 off the root (as in the test against Newton above): the prediction
+    # ends where the updates would stop shrinking, to rounding, with fewer of them.
+    make, kw, h, _ = SHORT[name]
+    problem = make(**kw)
+    newton = dvi.CGVI(6, root_finder=dvi.RoundoffNewton(ftol=0.0))
+
+    @jax.jit
+    def solve(y0):
+        ctx, span, z0 = step_system(newton, problem, h)
+        a = projected_root_find(newton, ctx, span, z0, 50)
+        start = jax.tree_util.tree_map(lambda x: x * (1 + 1e-3) + 1e-4, a.value)
+        out = []
+        for predict in (False, True):
+            solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0, predict=predict))
+            sol = projected_root_find(solver, ctx, span, start, 50)
+            out.append((newton.formulation.projected_end_state(sol.value, span, ctx),
+                        sol.result, sol.stats["num_steps"]))
+        return newton.formulation.projected_end_state(a.value, span, ctx), out
+
+    ya, ((y_full, r_full, n_full), (y_pred, r_pred, n_pred)) = solve(problem.y0)
+    assert r_full == optx.RESULTS.successful and r_pred == optx.RESULTS.successful
+    for a, b in zip(ya, y_pred, strict=True):
+        scale = max(1.0, float(jnp.max(jnp.abs(a))))
+        assert float(jnp.max(jnp.abs(a - b))) <= 8 * 2.2e-16 * scale
+    assert int(n_pred) < int(n_full)
+
+
+def test_predict_halves_the_updates_of_a_run_to_round_off():
+    # Kepler e = 0.5, 100 steps per orbit: chord to round-off in 2 updates a step (4.5
+    # without the prediction, on the benchmarks page), ending where it does without it.
+    make, kw, h, n = SHORT["kepler"]
+    problem = make(**kw)
+    ends, histograms = [], []
+    for predict in (False, True):
+        solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0, inverse=False,
+                                                             predict=predict))
+        sol = run(problem, solver, h, n)
+        assert sol.result == diffrax.RESULTS.successful
+        ends.append(np.asarray(sol.ys[0][-1]))
+        histograms.append(np.asarray(sol.solver_state.histogram))
+    # every step after the first (which starts from the constant curve) in two updates, and
+    # at most half the updates of the run without the prediction
+    assert histograms[1][:3].sum() >= n - 1, histograms[1][:8]
+    updates = [int(np.dot(np.arange(hist.size), hist)) for hist in histograms]
+    assert updates[1] <= 0.5 * updates[0], updates
+    np.testing.assert_allclose(ends[1], ends[0], rtol=0, atol=1e-13)
 
 
 # -- the kinetic matrix ---------------------------------------------------------------------------
