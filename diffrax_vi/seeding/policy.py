@@ -128,8 +128,7 @@ class Seed(NamedTuple):
 
     - `start`: the all-parameter unknowns; for `VariableProjection`, `(hidden, start)`: the
       parameters whose hidden layer spans the step, and the function of the span that gives
-      the solve's start (`step_solve.curve_start`: a curve projected on the span and the
-      start of `p_{n+1}`).
+      the solve's start (a curve projected on the span, and the start of `p_{n+1}`).
     - `warm`, `refitted`: whether the start carries the previous step's curve continued, or
       its neurons with refitted output weights (the solver counts both).
     - `cold_inputs`, `fit_inputs`: what the root finder's fallback (the fresh fit) is computed
