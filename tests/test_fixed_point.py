@@ -240,10 +240,10 @@ def test_divergence_and_non_finite_are_reported():
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
-@pytest.mark.parametrize("inverse", [True, False])
-def test_low_precision_stays_in_its_dtype(dtype, inverse):
+@pytest.mark.parametrize("inverse, predict", [(True, False), (False, False), (True, True)])
+def test_low_precision_stays_in_its_dtype(dtype, inverse, predict):
     # Below 32 bits the factorisation runs in float32; the iterates keep the working dtype.
-    rf = FixedPointIteration(ftol=0.0, inverse=inverse)
+    rf = FixedPointIteration(ftol=0.0, inverse=inverse, predict=predict)
     sol = optx.root_find(_system, rf, jnp.array([1.1, 1.9], dtype), max_steps=50, throw=False)
     assert sol.value.dtype == dtype and sol.state.f.dtype == dtype
     assert sol.result == optx.RESULTS.successful
