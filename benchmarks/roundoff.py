@@ -102,6 +102,9 @@ def growth_configs():
         "CGVI(7), compensated, ftol 0": dvi.CGVI(7, root_finder=dvi.RoundoffNewton(ftol=0.0)),
         "CGVI(7), chord, ftol 1": dvi.CGVI(7, root_finder=dvi.FixedPointIteration(ftol=1.0)),
         "CGVI(7), chord, ftol 0": dvi.CGVI(7, root_finder=dvi.FixedPointIteration(ftol=0.0)),
+        "CGVI(7), chord, ftol 0, predict": dvi.CGVI(
+            7, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True)
+        ),
         "CGVI(7), kinetic fixed point, ftol 0": dvi.CGVI(
             7, root_finder=dvi.FixedPointIteration(ftol=0.0, matrix="kinetic")
         ),

@@ -15,6 +15,7 @@ product with `J₀⁻¹` instead of a Jacobian, an LU factorisation and a line s
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
@@ -34,6 +35,9 @@ __all__ = ["FixedPointIteration"]
 # unknowns: small against the rounding of a step (about 0.4 eps of energy), so that what the
 # iteration leaves behind cannot build up to a drift.
 PREDICT_MARGIN = 1024
+
+# The `refresh` of the updates after a restart (`FixedPointIteration._second_try`).
+SECOND_TRY_REFRESH = 0.5
 
 
 class _ChordState(NewtonState):
@@ -86,8 +90,13 @@ class FixedPointIteration(RoundoffNewton):
     residual as `nonfinite`, so an iteration that cannot contract (a stiff problem, a long
     step) fails loudly and the step is rejected rather than accepted wrong.
 
-    the hint `restart = (first_try, start)` has the meaning it has for `RoundoffNewton`;
-    the Jacobian is formed and factorised afresh at the restart point.
+    The hints `max_iterations` and `restart = (first_try, start)` have the meaning they
+    have for `RoundoffNewton`; the iteration's matrix is formed and factorised afresh at the
+    restart point, and (with `matrix="jacobian"`) the updates after it refresh their
+    Jacobian as `refresh=0.5` does: where the chord iteration could not contract from the
+    first start (a stiff problem, a long step), the second try is Newton's method, at
+    Newton's price, instead of a second failure. Solves that converge in the first try pay
+    nothing for it.
 
     **Arguments:**
 
@@ -130,7 +139,9 @@ class FixedPointIteration(RoundoffNewton):
     `refreshes` (the Jacobians formed after the first).
     """
 
-    hints_read: ClassVar[frozenset[str]] = frozenset({"scale", "jacobian", "restart", "kinetic"})
+    hints_read: ClassVar[frozenset[str]] = frozenset(
+        {"scale", "jacobian", "max_iterations", "restart", "kinetic"}
+    )
 
     refresh: float | None = eqx.field(static=True, default=None)
     inverse: bool = eqx.field(static=True, default=True)
@@ -186,8 +197,9 @@ class FixedPointIteration(RoundoffNewton):
         return _ChordState(flat, inf, no, no, zero, zero, no, factors,
                            jnp.zeros((), flat.dtype), zero, jnp.array(True))
 
-    def step(self, fn, y, args, options, state, tags):
-        del tags
+    def _update(self, fn, y, args, options, state):
+        """One chord update from `y` (and, with `refresh`, the Jacobian formed again where
+        the update was slow or stalled)."""
         flat_y, unravel = ravel_pytree(y)
         dtype = flat_y.dtype
         scale = jnp.asarray(hints_of(options).scale, dtype)
@@ -198,20 +210,18 @@ class FixedPointIteration(RoundoffNewton):
             return ravel_pytree(out)[0], aux
 
         d = -self._apply(state.factors, state.f, y)
-        fmax = jnp.max(jnp.abs(state.f))
-        near = fmax <= floor
         f_new, aux = residual(flat_y + d)
-
-        def enough(f_try, a):
-            return jnp.max(jnp.abs(f_try)) <= (1 - 1e-4 * a) * fmax
-
         a = jnp.ones((), dtype)
         if self.refresh is not None:
             # A step with a Jacobian formed where it starts is Newton's: far from the root it
             # backtracks as `RoundoffNewton` does.
+            fmax = jnp.max(jnp.abs(state.f))
+            near = fmax <= floor
+
             def cond(carry):
                 a, f_try, _, k = carry
-                return state.fresh & ~near & ~enough(f_try, a) & (k < self.max_backtracks)
+                enough = jnp.max(jnp.abs(f_try)) <= (1 - 1e-4 * a) * fmax
+                return state.fresh & ~near & ~enough & (k < self.max_backtracks)
 
             def body(carry):
                 a, _, _, k = carry
@@ -221,8 +231,12 @@ class FixedPointIteration(RoundoffNewton):
 
             a, f_new, aux, _ = jax.lax.while_loop(cond, body, (a, f_new, aux, 0))
         new = flat_y + a * d
-        fmax_new = jnp.max(jnp.abs(f_new))
-        norm = jnp.max(jnp.abs(a * d))
+        # the sizes the tests below need, in one reduction (one kernel in the loop)
+        fmax, fmax_new, norm, size = jnp.max(
+            jnp.abs(jnp.stack([state.f, f_new, a * d, new])), axis=1
+        )
+        near = fmax <= floor
+        lower = fmax_new <= (1 - 1e-4 * a) * fmax
         iterations = state.iterations + 1
         known = jnp.isfinite(state.step_norm) & (state.step_norm > 0)
         contraction = jnp.where(known, norm / jnp.where(known, state.step_norm, 1), 0)
@@ -232,7 +246,7 @@ class FixedPointIteration(RoundoffNewton):
         shrank = norm < state.step_norm
         if self.refresh is not None:
             shrank = shrank | state.fresh
-        stalled = ~near & ~(enough(f_new, a) & shrank)
+        stalled = ~near & ~(lower & shrank)
         stalls = jnp.where(stalled, state.stalls + 1, 0)
         step_norm = norm
         factors, refreshes, fresh = state.factors, state.refreshes, jnp.array(False)
@@ -245,14 +259,14 @@ class FixedPointIteration(RoundoffNewton):
             undo = stalled
             new = jnp.where(undo, flat_y, new)
             f_new = jnp.where(undo, state.f, f_new)
-            fmax_new = jnp.max(jnp.abs(f_new))
+            fmax_new = jnp.where(undo, fmax, fmax_new)
             step_norm = jnp.where(undo, state.step_norm, norm)
             stalls = jnp.where(chord_stall, state.stalls, stalls)
             need = chord_stall | slow
             fresh = state.fresh & undo
         converged = fmax_new <= self._tolerance("ftol", dtype) * scale
         if self.confirm:
-            converged = converged & self._confirmed(norm, new, dtype)
+            converged = converged & (norm <= float(jnp.finfo(dtype).eps) ** 0.5 * size)
         if self.predict:
             # A linear iteration's remaining error is about `θ/(1 − θ)` times its last update
             # (θ the contraction factor). It is a fixed function of the step's start, the
@@ -266,54 +280,56 @@ class FixedPointIteration(RoundoffNewton):
             eps = float(jnp.finfo(dtype).eps)
             converged = converged | (
                 slowing & (fmax_new <= floor)
-                & (remaining <= eps / PREDICT_MARGIN * jnp.max(jnp.abs(new)))
+                & (remaining <= eps / PREDICT_MARGIN * size)
             )
         # Rounding has taken over once an update near the root is no smaller than the one
         # before it.
         at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)
-        restarted = state.restarted
-        restart = hints_of(options).restart
-        give_up = None
-        if restart is not None:
-            first_try, start = restart
-            give_up = ~restarted & ~(converged | at_floor) & (
-                (iterations >= first_try) | (stalls >= self.max_stalls)
-                | ~jnp.isfinite(fmax_new)
-            )
-            step_norm = jnp.where(give_up, jnp.full((), jnp.inf, dtype), step_norm)
-            stalls = jnp.where(give_up, 0, stalls)
-            converged = converged & ~give_up
-            at_floor = at_floor & ~give_up
-            restarted = restarted | give_up
-            need = give_up if need is None else need | give_up
         if need is not None:
-            # One lazy branch for a restart and a refresh alike (each iteration pays for the
-            # branch's test only): the restart point where one is due, then the Jacobian at
-            # the iteration's new point and its factors.
+            # A lazy branch (each iteration pays for its test only): the Jacobian at the
+            # iteration's new point and its factors.
             need = need & ~(converged | at_floor)
-            current = (new, f_new)
-
-            def fresh_start():
-                y_r = ravel_pytree(start(args))[0].astype(dtype)
-                return y_r, residual(y_r)[0]
+            point = new
 
             def refactor():
-                point, f_point = current
-                if give_up is not None:
-                    point, f_point = unless_all_skip(give_up, fresh_start, current)
-                if self.matrix == "kinetic" and self.refresh is None:
-                    # a restart: the kinetic matrix at the restart point
-                    return point, f_point, (hints_of(options).kinetic(unravel(point), args),)
                 jac = self._jacobian(fn, unravel(point), args, options)
                 if self.matrix == "kinetic":
                     # the kinetic matrix gives way to the Jacobian itself (Newton's update)
                     inverse = _factor(jac, dtype, True)[0]
-                    return point, f_point, (factors[0], inverse, jnp.array(True))
-                return point, f_point, _factor(jac, dtype, self.inverse)
+                    return (factors[0], inverse, jnp.array(True))
+                return _factor(jac, dtype, self.inverse)
 
-            new, f_new, factors = unless_all_skip(need, refactor, (new, f_new, factors))
+            factors = unless_all_skip(need, refactor, factors)
             refreshes = refreshes + need.astype(jnp.int32)
             fresh = fresh | need
         state = _ChordState(f_new, step_norm, converged, at_floor, stalls, iterations,
-                            restarted, factors, contraction, refreshes, fresh)
+                            state.restarted, factors, contraction, refreshes, fresh)
         return unravel(new), state, aux
+
+    def _second_try(self) -> FixedPointIteration:
+        """After a restart, the Jacobian's chord iteration goes on with `refresh`
+        (`SECOND_TRY_REFRESH` where none is set): an iteration that did not contract from
+        the first start turns into Newton's method from the second instead of failing
+        again."""
+        if self.matrix == "jacobian" and self.refresh is None:
+            return dataclasses.replace(self, refresh=SECOND_TRY_REFRESH)
+        return self
+
+    def _restarted(self, fn, start, args, options, carry):
+        """`carry` moved to the point `start`, with fresh bookkeeping and the iteration's
+        matrix formed and factorised there."""
+        point, newton, aux = super()._restarted(fn, start, args, options, carry)
+        state = carry[1]
+        dtype = newton.f.dtype
+        if self.matrix == "kinetic" and self.refresh is None:
+            factors = (hints_of(options).kinetic(point, args),)
+        elif self.matrix == "kinetic":
+            # with `refresh`, the restart goes on with Newton's update, as a refresh does
+            jac = self._jacobian(fn, point, args, options)
+            factors = (state.factors[0], _factor(jac, dtype, True)[0], jnp.array(True))
+        else:
+            factors = _factor(self._jacobian(fn, point, args, options), dtype, self.inverse)
+        chord = _ChordState(*(getattr(newton, f.name) for f in dataclasses.fields(newton)),
+                            factors, jnp.zeros_like(state.contraction),
+                            state.refreshes + 1, jnp.array(True))
+        return point, chord, aux

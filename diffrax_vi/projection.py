@@ -51,7 +51,7 @@ from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, st
 from .lazy import unless_all_skip
 from .linalg import solve
 from .precision import lapack_dtype
-from .step_hints import AbstractStepRootFinder, hints_of
+from .step_hints import AbstractStepRootFinder, StepHints, hints_of
 
 __all__ = [
     "AbstractHiddenLayer",
@@ -611,10 +611,15 @@ class RoundoffNewton(AbstractStepRootFinder):
     (`nonlinear_divergence`) after `max_stalls` line searches in a row find no decrease, and
     at the iteration cap.
 
-    Given the hint `restart = (first_try, start)`, a solve that has not converged after
-    `first_try` iterations (or has stalled or become non-finite before) starts once more
-    from `start(args)`, within the same iteration cap; `start` runs only where a solve needs
-    it (under `vmap`: only if some member does). `state.restarted` says whether it did.
+    Given the hint `max_iterations` (the solver's iteration cap), the whole solve runs in
+    one optimistix step, as compiled loops of updates that carry only what the iteration
+    needs; `state.iterations` counts the updates. Given also the hint
+    `restart = (first_try, start)`, a solve that has not converged after `first_try`
+    iterations (or has stalled or become non-finite before) starts once more from
+    `start(args)`, within the same cap; the test and the restart sit between two loops,
+    not in every iteration, and `start` runs only where a solve needs it (under `vmap`:
+    only if some member does). `state.restarted` says whether it did. Without the hint,
+    each optimistix step is one update (`optimistix.root_find`'s `max_steps` is the cap).
 
     **Arguments:**
 
@@ -637,7 +642,9 @@ class RoundoffNewton(AbstractStepRootFinder):
       solver.
     """
 
-    hints_read: ClassVar[frozenset[str]] = frozenset({"scale", "jacobian", "restart"})
+    hints_read: ClassVar[frozenset[str]] = frozenset(
+        {"scale", "jacobian", "max_iterations", "restart"}
+    )
 
     ftol: float = 64.0
     floor: float = 4096.0
@@ -697,6 +704,64 @@ class RoundoffNewton(AbstractStepRootFinder):
 
     def step(self, fn, y, args, options, state, tags):
         del tags
+        hints = hints_of(options)
+        if hints.max_iterations is None:
+            if hints.restart is not None:
+                raise ValueError("the hint `restart` needs the hint `max_iterations`")
+            return self._update(fn, y, args, options, state)
+        return self._whole_solve(fn, y, args, options, state, hints)
+
+    def _whole_solve(self, fn, y, args, options, state, hints: StepHints):
+        """The solve from `y` to its end, in compiled loops of `_update`: up to `first_try`
+        iterations, the restart where that try ended unconverged, then the rest up to
+        `max_iterations`. The restart's test and branch run once per solve, not on every
+        iteration."""
+        cap = hints.max_iterations
+        carry = self._update(fn, y, args, options, state)  # every solve makes an update
+        if hints.restart is None or hints.restart[0] >= cap:
+            return self._whole_solve_loop(fn, args, options, carry, cap)
+        first_try, start = hints.restart
+        carry = self._whole_solve_loop(fn, args, options, carry, first_try)
+        ended = carry[1]
+        give_up = ~(ended.converged | ended.at_floor) & (ended.iterations < cap)
+        carry = unless_all_skip(
+            give_up, lambda: self._restarted(fn, start(args), args, options, carry), carry
+        )
+        return self._second_try()._whole_solve_loop(fn, args, options, carry, cap)
+
+    def _second_try(self) -> RoundoffNewton:
+        """The root finder whose updates follow a restart (this one)."""
+        return self
+
+    def _whole_solve_loop(self, fn, args, options, carry, limit):
+        """`_update` from `carry = (y, state, aux)` until the solve ends or has made `limit`
+        updates in all."""
+
+        def cond(carry):
+            done, _ = self._ended(carry[1])
+            return ~done & (carry[1].iterations < limit)
+
+        def body(carry):
+            return self._update(fn, carry[0], args, options, carry[1])
+
+        return jax.lax.while_loop(cond, body, carry)
+
+    def _restarted(self, fn, start, args, options, carry):
+        """`carry = (y, state, aux)` moved to the point `start`, with fresh bookkeeping."""
+        y, state, aux = carry
+        dtype = ravel_pytree(y)[0].dtype
+        _, unravel = ravel_pytree(y)
+        point = unravel(ravel_pytree(start)[0].astype(dtype))
+        f, _ = fn(point, args)
+        inf = jnp.full((), jnp.inf, dtype)
+        no = jnp.array(False)
+        zero = jnp.zeros_like(state.stalls)
+        fresh = NewtonState(ravel_pytree(f)[0], inf, no, no, zero, state.iterations,
+                            jnp.array(True))
+        return point, fresh, aux
+
+    def _update(self, fn, y, args, options, state):
+        """One Newton update from `y` (with backtracking far from the root)."""
         flat_y, unravel = ravel_pytree(y)
         dtype = flat_y.dtype
         scale = jnp.asarray(hints_of(options).scale, dtype)
@@ -741,33 +806,12 @@ class RoundoffNewton(AbstractStepRootFinder):
         )
         stalls = jnp.where(decreased, 0, state.stalls + 1)
         step_norm = jnp.where(decreased, norm, state.step_norm)
-        restarted = state.restarted
-        restart = hints_of(options).restart
-        if restart is not None:
-            first_try, start = restart
-            give_up = ~restarted & ~(converged | at_floor) & (
-                (iterations >= first_try) | (stalls >= self.max_stalls)
-                | ~jnp.isfinite(fmax_new)
-            )
-
-            def fresh():
-                y_r = ravel_pytree(start(args))[0].astype(dtype)
-                return y_r, residual(y_r)[0]
-
-            y_r, f_r = unless_all_skip(give_up, fresh, (new, f_new))
-            new = jnp.where(give_up, y_r, new)
-            f_new = jnp.where(give_up, f_r, f_new)
-            inf = jnp.full((), jnp.inf, dtype)
-            step_norm = jnp.where(give_up, inf, step_norm)
-            stalls = jnp.where(give_up, 0, stalls)
-            converged = converged & ~give_up
-            at_floor = at_floor & ~give_up
-            restarted = restarted | give_up
-        state = NewtonState(f_new, step_norm, converged, at_floor, stalls, iterations, restarted)
+        state = NewtonState(f_new, step_norm, converged, at_floor, stalls, iterations,
+                            state.restarted)
         return unravel(new), state, aux
 
-    def terminate(self, fn, y, args, options, state, tags):
-        del fn, y, args, options, tags
+    def _ended(self, state: NewtonState):
+        """Whether the solve has ended at `state`, and how."""
         fmax = jnp.max(jnp.abs(state.f))
         nonfinite = ~jnp.isfinite(fmax)
         stalled = state.stalls >= self.max_stalls
@@ -777,6 +821,18 @@ class RoundoffNewton(AbstractStepRootFinder):
             optx.RESULTS.where(stalled, optx.RESULTS.nonlinear_divergence, optx.RESULTS.successful),
         )
         return state.converged | state.at_floor | nonfinite | stalled, result
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, y, args, tags
+        done, result = self._ended(state)
+        if hints_of(options).max_iterations is None:
+            return done, result
+        # The whole solve ran in the first step (`_whole_solve`).
+        ran = state.iterations > 0
+        result = optx.RESULTS.where(
+            done, result, optx.RESULTS.nonlinear_max_steps_reached
+        )
+        return ran, optx.RESULTS.where(ran, result, optx.RESULTS.successful)
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}

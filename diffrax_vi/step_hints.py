@@ -38,8 +38,11 @@ class StepHints(eqx.Module):
     - `jacobian`: `(y, args) ↦` the dense Jacobian of `F`, assembled by the formulation.
     - `kinetic`: `(y, args) ↦` the inverse of the kinetic part of the Jacobian (the projected
       step), for a fixed-point iteration.
+    - `max_iterations`: the solver's iteration cap. A root finder that reads it may run the
+      whole solve in one optimistix step (its own loop, without optimistix's bookkeeping on
+      every iteration) and count its iterations in its state's `iterations`.
     - `restart`: `(first_try, start)`: a solve not converged after `first_try` iterations
-      starts once more from `start(args)`.
+      starts once more from `start(args)` (with `max_iterations`).
     - `fallback`: `args ↦` a second starting point (a fresh seed fit), where a solve from the
       given start fails; `fallback_usable(args)` says whether it may be used, and
       `start_at_fallback(args)` makes the solve begin there instead.
@@ -51,6 +54,7 @@ class StepHints(eqx.Module):
     outputs: Callable | None = None
     jacobian: Callable | None = None
     kinetic: Callable | None = None
+    max_iterations: int | None = None
     restart: tuple | None = None
     fallback: Callable | None = None
     fallback_usable: Callable | None = None

@@ -107,21 +107,26 @@ def solve_projected(vi: Any, ctx: StepContext, hidden, start: Callable,
 def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, restart=None,
                         history=None):
     """`optimistix.root_find` of the projected step's equations on `span` from `z0`, with the
-    options the solver hands its root finder (residual scale, Jacobian, kinetic matrix, and
-    the restart `(first_try, start)` where given). Its `aux` is the forces at the nodes of
-    the final iterate."""
+    options the solver hands its root finder (residual scale, Jacobian, kinetic matrix, the
+    iteration cap, and the restart `(first_try, start)` where given). Its `aux` is the forces
+    at the nodes of the final iterate, and `stats["num_steps"]` the iterations made (by a
+    root finder that runs the whole solve in one optimistix step, too)."""
     form = vi.formulation
     hints = StepHints(
         scale=_residual_scale(ctx),
         jacobian=form.reduced_jacobian,
         kinetic=functools.partial(form.kinetic_inverse, uniform=form.uniform_span(span)),
+        max_iterations=max_steps,
         restart=restart,
     )
-    return optx.root_find(
+    sol = optx.root_find(
         form.reduced_residual_and_forces, vi.root_finder, z0, (ctx, span, history),
         options=step_options(hints), has_aux=True,
         max_steps=max_steps, adjoint=vi.adjoint, throw=False,
     )
+    if "max_iterations" in getattr(vi.root_finder, "hints_read", ()):
+        sol = dataclasses.replace(sol, stats={**sol.stats, "num_steps": sol.state.iterations})
+    return sol
 
 
 def solve_all(vi: Any, ctx: StepContext, seed: Seed):

@@ -11,7 +11,7 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.fixed_point import FixedPointIteration
-from diffrax_vi.step_solve import projected_root_find
+from diffrax_vi.step_solve import FIRST_TRY, projected_root_find
 
 jax.config.update("jax_enable_x64", True)
 
@@ -157,22 +157,35 @@ def test_network_oscillator_in_one_update(confirm, updates):
     assert np.max(np.abs(np.asarray(sol.ys[0]) - q_ref)) <= 2e-14
 
 
-def _stiff(root_finder):
+def _stiff(root_finder, **options):
     # A stiff quartic spring at a long step: from the previous curve continued the start is
     # far, and the Jacobian there is not the one at the root.
     term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 2500.0 * jnp.sum(q**4))
     y0 = (jnp.array([1.0]), jnp.array([0.0]))
     sol = diffrax.diffeqsolve(
-        term, dvi.CGVI(6, root_finder=root_finder), 0.0, 2.0, 0.2, y0, max_steps=10,
-        saveat=diffrax.SaveAt(t1=True), throw=False,
+        term, dvi.CGVI(6, root_finder=root_finder, **options), 0.0, 2.0, 0.2, y0,
+        max_steps=10, saveat=diffrax.SaveAt(t1=True), throw=False,
     )
     return sol.result, sol.ys[0][-1]
 
 
 def test_fails_loudly_where_the_chord_cannot_contract():
-    # The step must fail, not be accepted wrong.
-    result, _ = _stiff(FixedPointIteration(ftol=1.0))
+    # Without a second try (an iteration cap within the first), the step must fail, not be
+    # accepted wrong.
+    result, _ = _stiff(FixedPointIteration(ftol=1.0), root_find_max_steps=FIRST_TRY)
     assert result != diffrax.RESULTS.successful
+
+
+@pytest.mark.slow
+def test_a_failed_first_try_goes_on_with_newton():
+    # Where the chord iteration cannot contract from the previous curve, the restart from the
+    # trajectory seed goes on with refreshed Jacobians: the step is Newton's.
+    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0))
+    assert newton == diffrax.RESULTS.successful
+    for rf in (FixedPointIteration(ftol=1.0), FixedPointIteration(ftol=0.0, predict=True)):
+        result, q = _stiff(rf)
+        assert result == diffrax.RESULTS.successful
+        np.testing.assert_allclose(np.asarray(q), np.asarray(q_newton), atol=1e-10)
 
 
 @pytest.mark.slow
