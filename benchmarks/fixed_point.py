@@ -255,6 +255,7 @@ def hard(repeats: int) -> None:
         "fixed point, ftol 1": FixedPointIteration(ftol=1.0),
         "fixed point + refresh 0.5, ftol 1": FixedPointIteration(ftol=1.0, refresh=0.5),
         "fixed point + refresh 0.1, ftol 1": FixedPointIteration(ftol=1.0, refresh=0.1),
+        "fixed point, ftol 0, predict": FixedPointIteration(ftol=0.0, predict=True),
     }
     pendulum = problems.double_pendulum()
     quartic = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 2500.0 * jnp.sum(q**4))
@@ -421,8 +422,8 @@ def predict(repeats: int) -> None:
         "chord (LU), ftol 0": FixedPointIteration(ftol=0.0, inverse=False),
         "chord (LU), ftol 0, predict": FixedPointIteration(ftol=0.0, inverse=False,
                                                            predict=True),
-        "chord (inverse), ftol 0, predict": FixedPointIteration(ftol=0.0, predict=True),
-        "CGVI(6) default (Newton, ftol 1, confirm)": None,
+        "Newton, ftol 1, confirm (CGVI's default before)": dvi.RoundoffNewton(ftol=1.0),
+        "CGVI(6) default (chord (inverse), ftol 0, predict)": None,
     }
     print("| problem | solver | us per step | / Dopri8 | iterations per step | final error |")
     print("|---|---|---|---|---|---|")

@@ -26,11 +26,12 @@ from .ansatz.dense import DenseNetBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
 from .ansatz.symmetry import MirrorPairs, SharedMirrorPairs
+from .fixed_point import FixedPointIteration
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
 from .nonlinear import AbstractDampedNewton, RegularisedNewton
 from .oga import OGA, OGA1d, OGA1dNormalized
 from .parameter_seed import AbstractParameterSeed
-from .projection import RoundoffNewton, VariableProjection
+from .projection import VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .seeding.fit import InitialWeights, LeastSquaresFit
 from .seeding.policy import SeedPolicy
@@ -259,9 +260,11 @@ def CGVI(
     by default (order `2·degree`).
 
     By default the step is solved on the span of the Lagrange basis in coordinates that are
-    orthonormal in the quadrature's norm (`VariableProjection()`), by Newton's method
-    (`RoundoffNewton(ftol=1)`) from the previous step's polynomial continued: a square,
-    well-conditioned system. A seed option (`initial_guess_method`,
+    orthonormal in the quadrature's norm (`VariableProjection()`), from the previous step's
+    polynomial continued: a square, well-conditioned system, solved to round-off by the
+    chord iteration with its Jacobian formed once per step
+    (`FixedPointIteration(ftol=0, predict=True)`, which goes on with Newton's updates where
+    it cannot contract). A seed option (`initial_guess_method`,
     `initial_trajectory_method`, `extrapolation_substep`, ...) or a damped root finder
     (`regularization_factor`, `LevenbergMarquardt()`) selects the reference's form instead:
     the values at the points as unknowns (`FreeEndpoints()`), seeded by an exact
@@ -279,7 +282,7 @@ def CGVI(
     kwargs: dict[str, Any] = {k: v for k, v in options.items() if k in _SOLVER_OPTIONS}
     if options.get("max_iterations") is not None:
         kwargs["root_find_max_steps"] = options["max_iterations"]
-    kwargs.setdefault("root_finder", RoundoffNewton(ftol=1.0))
+    kwargs.setdefault("root_finder", FixedPointIteration(ftol=0.0, predict=True))
     return NetworkVI(basis, quadrature, formulation=VariableProjection(), **kwargs)
 
 

@@ -715,19 +715,44 @@ class RoundoffNewton(AbstractStepRootFinder):
         """The solve from `y` to its end, in compiled loops of `_update`: up to `first_try`
         iterations, the restart where that try ended unconverged, then the rest up to
         `max_iterations`. The restart's test and branch run once per solve, not on every
-        iteration."""
+        iteration; where both tries take the same update, it is compiled once (a loop over
+        the tries)."""
         cap = hints.max_iterations
-        carry = self._update(fn, y, args, options, state)  # every solve makes an update
+        # the carry's aux before the first update: zeros of its shape (nothing evaluated)
+        aux = jax.tree_util.tree_map(
+            lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(lambda: fn(y, args)[1])
+        )
+        carry = (y, state, aux)
         if hints.restart is None or hints.restart[0] >= cap:
             return self._whole_solve_loop(fn, args, options, carry, cap)
         first_try, start = hints.restart
-        carry = self._whole_solve_loop(fn, args, options, carry, first_try)
-        ended = carry[1]
-        give_up = ~(ended.converged | ended.at_floor) & (ended.iterations < cap)
-        carry = unless_all_skip(
-            give_up, lambda: self._restarted(fn, start(args), args, options, carry), carry
-        )
-        return self._second_try()._whole_solve_loop(fn, args, options, carry, cap)
+
+        def restarted(carry, need):
+            return unless_all_skip(
+                need, lambda: self._restarted(fn, start(args), args, options, carry), carry
+            )
+
+        def unconverged(carry):
+            state = carry[1]
+            return ~(state.converged | state.at_floor) & (state.iterations < cap)
+
+        second = self._second_try()
+        if second is not self:
+            carry = self._whole_solve_loop(fn, args, options, carry, first_try)
+            carry = restarted(carry, unconverged(carry))
+            return second._whole_solve_loop(fn, args, options, carry, cap)
+
+        def cond(outer):
+            tries, carry = outer
+            return (tries == 0) | ((tries == 1) & unconverged(carry))
+
+        def body(outer):
+            tries, carry = outer
+            carry = restarted(carry, (tries > 0) & unconverged(carry))
+            limit = jnp.where(tries > 0, cap, first_try)
+            return tries + 1, self._whole_solve_loop(fn, args, options, carry, limit)
+
+        return jax.lax.while_loop(cond, body, (jnp.array(0, jnp.int32), carry))[1]
 
     def _second_try(self) -> RoundoffNewton:
         """The root finder whose updates follow a restart (this one)."""
