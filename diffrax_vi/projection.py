@@ -852,8 +852,9 @@ class RoundoffNewton(AbstractStepRootFinder):
         done, result = self._ended(state)
         if hints_of(options).max_iterations is None:
             return done, result
-        # The whole solve ran in the first step (`_whole_solve`).
-        ran = state.iterations > 0
+        # The whole solve ran in the first step (`_whole_solve`); a start that has already
+        # ended (a non-finite residual) is not stepped at all.
+        ran = (state.iterations > 0) | done
         result = optx.RESULTS.where(
             done, result, optx.RESULTS.nonlinear_max_steps_reached
         )

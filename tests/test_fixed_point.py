@@ -472,3 +472,18 @@ def test_confirm_is_checked_and_inherited():
     # the network's default root finder does not confirm; CGVI's does
     assert not network(None).root_finder.confirm
     assert dvi.CGVI(6).root_finder.confirm
+
+
+@pytest.mark.parametrize("root_finder", [dvi.RoundoffNewton(ftol=1.0),
+                                         FixedPointIteration(ftol=0.0, predict=True)])
+def test_a_non_finite_start_ends_the_solve_at_once(root_finder):
+    # Run as one whole solve (the solver's hints), a start whose residual is not finite is
+    # reported as such, with no update made: it neither loops to the cap nor passes.
+    solver = dvi.CGVI(6, root_finder=root_finder)
+    ctx, span, z0 = step_system(solver, problems.harmonic_oscillator(), 0.5)
+    bad = jax.tree_util.tree_map(lambda a: a.at[(0,) * a.ndim].set(jnp.nan), z0)
+    sol = projected_root_find(solver, ctx, span, bad, 50)
+    assert sol.result == optx.RESULTS.nonfinite
+    assert int(sol.stats["num_steps"]) == 0
+    good = projected_root_find(solver, ctx, span, z0, 50)
+    assert good.result == optx.RESULTS.successful and int(good.stats["num_steps"]) >= 1
