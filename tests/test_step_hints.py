@@ -144,3 +144,11 @@ def test_a_root_finder_outside_the_package_gets_the_hints_it_reads(recwarn):
     assert jnp.max(jnp.abs(own.ys[0] - ours.ys[0])) <= 1e-13
     assert missing_hints(_PlainNewton()) == {
         k: v for k, v in HINT_FEATURES.items() if k not in ("jacobian", "scale")}
+
+
+def test_a_restart_hint_needs_the_iteration_cap():
+    # The restart sits between the loops of a whole solve, which needs the solver's cap.
+    hints = StepHints(restart=(4, lambda args: jnp.zeros(2)))
+    with pytest.raises(ValueError, match="max_iterations"):
+        optx.root_find(lambda y, args: y - 1.0, dvi.RoundoffNewton(), jnp.zeros(2),
+                       options=step_options(hints), max_steps=10, throw=False)
