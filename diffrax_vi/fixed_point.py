@@ -72,7 +72,10 @@ class FixedPointIteration(RoundoffNewton):
 
     The Jacobian (the hint `jacobian` where the caller gives one, else `jax.jacfwd`) is
     formed and LU-factorised once, at the start of the solve; every iteration then costs one
-    residual and one application of the factors. It converges linearly, at a rate that is
+    residual and one application of the factors. Where the caller gives the hint `inverse`
+    (the projected step's elimination without pivoting, cheaper than LAPACK at its sizes),
+    the start takes that explicit inverse instead, and the factorisation only where it is
+    not finite. It converges linearly, at a rate that is
     small when
     the start is close to the root and the Jacobian varies little along the way: a non-stiff
     problem solved from the previous step's curve. A drop-in for `RoundoffNewton` wherever
@@ -140,7 +143,7 @@ class FixedPointIteration(RoundoffNewton):
     """
 
     hints_read: ClassVar[frozenset[str]] = frozenset(
-        {"scale", "jacobian", "max_iterations", "restart", "kinetic"}
+        {"scale", "jacobian", "inverse", "max_iterations", "restart", "kinetic"}
     )
 
     refresh: float | None = eqx.field(static=True, default=None)
@@ -190,12 +193,26 @@ class FixedPointIteration(RoundoffNewton):
                 work = lapack_dtype(dtype)
                 factors += (jnp.zeros((size, size), work), jnp.array(False))
         else:
-            factors = _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
+            factors = self._start_factors(fn, y, args, options, dtype)
         inf = jnp.full((), jnp.inf, flat.dtype)
         zero = jnp.array(0, jnp.int32)
         no = jnp.array(False)
         return _ChordState(flat, inf, no, no, zero, zero, no, factors,
                            jnp.zeros((), flat.dtype), zero, jnp.array(True))
+
+    def _start_factors(self, fn, y, args, options, dtype) -> tuple[Array, ...]:
+        """The Jacobian's factors at the start of a solve: the hint `inverse` where the caller
+        gives one (an explicit inverse computed its own, cheaper way), with the pivoted
+        factorisation where that gave non-finite entries; else `_factor`."""
+        given = hints_of(options).inverse
+        if given is None or not self.inverse:
+            return _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
+        inverse = given(y, args).astype(lapack_dtype(dtype))
+        return unless_all_skip(
+            ~jnp.all(jnp.isfinite(inverse)),
+            lambda: _factor(self._jacobian(fn, y, args, options), dtype, True),
+            (inverse,),
+        )
 
     def _update(self, fn, y, args, options, state):
         """One chord update from `y` (and, with `refresh`, the Jacobian formed again where

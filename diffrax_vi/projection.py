@@ -49,7 +49,7 @@ from .ansatz.shallow import ShallowNetBasis
 from .degenerate import first_order_end_correction
 from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
 from .lazy import unless_all_skip
-from .linalg import solve
+from .linalg import solve, unpivoted_inverse
 from .precision import lapack_dtype
 from .step_hints import AbstractStepRootFinder, StepHints, hints_of
 
@@ -454,7 +454,20 @@ class VariableProjection(FreeEndpoints):
             ts, q, dq / h
         )
         a, bv = span.gq, span.gv
-        blocks = (h * b, a, fq, a), (b, a, fv, bv), (b, bv, pq, a), (b / h, bv, pv, bv)
+        weights = (h * b, b, b, b / h)
+        hessians = (fq, fv, pq, pv)
+        if dim > 1 and self.uniform_span(span):
+            # The same directions in every coordinate: the span's part of each block is a
+            # constant `(R, k, k)` array, and the coupling one product of the stacked
+            # constants with the stacked weighted Hessians (one kernel).
+            a0, v0 = (np.asarray(x, np.float64)[0] for x in (a, bv))
+            spans = np.concatenate([np.einsum("jk,jl->jkl", x, y)
+                                    for x, y in ((a0, a0), (a0, v0), (v0, a0), (v0, v0))])
+            weighted = jnp.concatenate([w[:, None, None] * m for w, m in zip(weights, hessians,
+                                                                              strict=True)])
+            coupling = jnp.einsum("jkl,jde->kdle", jnp.asarray(spans, dtype), weighted)
+            return self._assemble(coupling, span, dtype)
+        blocks = tuple(zip(weights, (a, a, bv, bv), hessians, (a, bv, a, bv), strict=True))
         contract = functools.partial(jnp.einsum, "j,djk,jde,ejl->kdle")
         if dim == 1:  # plain products, which XLA fuses (and drops where a block is zero)
             terms = [contract(*block) for block in blocks]
@@ -466,6 +479,20 @@ class VariableProjection(FreeEndpoints):
             terms = list(stacked)
         coupling = terms[0] + terms[1] + terms[2] + terms[3]
         return self._assemble(coupling, span, dtype)
+
+    def reduced_inverse(self, z, args) -> Array:
+        """The inverse of `reduced_jacobian`, by elimination without pivoting
+        (`unpivoted_inverse`) in a fixed row order: each continuity row takes the place of the
+        constant direction's action row (whose diagonal entry is of order `h`, zero for a
+        free particle), which takes the place of the continuity row (its entry in the `Δp`
+        column is 1). The rest of the diagonal is the kinetic block, of order `M/h`. Non-finite
+        where a pivot vanished; the caller falls back to a pivoted factorisation."""
+        dc = z[0]
+        k, dim = dc.shape
+        n = k * dim
+        order = np.arange(n + dim)
+        order[:dim], order[n:] = np.arange(n, n + dim), np.arange(dim)
+        return unpivoted_inverse(self.reduced_jacobian(z, args), order)
 
     @staticmethod
     def _assemble(coupling: Array, span: ProjectedSpan, dtype) -> Array:

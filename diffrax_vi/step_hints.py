@@ -36,6 +36,8 @@ class StepHints(eqx.Module):
     - `outputs`: `y ↦` the step's results (`(q_{n+1}, p_{n+1})`): a solve may end where the
       residual stopped falling but these no longer change.
     - `jacobian`: `(y, args) ↦` the dense Jacobian of `F`, assembled by the formulation.
+    - `inverse`: `(y, args) ↦` the inverse of that Jacobian, computed the formulation's own
+      cheaper way (possibly non-finite where that way fails: check).
     - `kinetic`: `(y, args) ↦` the inverse of the kinetic part of the Jacobian (the projected
       step), for a fixed-point iteration.
     - `max_iterations`: the solver's iteration cap. A root finder that reads it may run the
@@ -53,6 +55,7 @@ class StepHints(eqx.Module):
     scale: Any = 1.0
     outputs: Callable | None = None
     jacobian: Callable | None = None
+    inverse: Callable | None = None
     kinetic: Callable | None = None
     max_iterations: int | None = None
     restart: tuple | None = None

@@ -112,21 +112,44 @@ def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, res
     at the nodes of the final iterate, and `stats["num_steps"]` the iterations made (by a
     root finder that runs the whole solve in one optimistix step, too)."""
     form = vi.formulation
+    fixed = _with_known_span(span)
+
+    def reading(f):
+        return lambda z, args: f(z, fixed(args))
+
+    if restart is not None:
+        first_try, start = restart
+        restart = (first_try, lambda args: start(fixed(args)))
     hints = StepHints(
         scale=_residual_scale(ctx),
-        jacobian=form.reduced_jacobian,
-        kinetic=functools.partial(form.kinetic_inverse, uniform=form.uniform_span(span)),
+        jacobian=reading(form.reduced_jacobian),
+        inverse=reading(form.reduced_inverse),
+        kinetic=reading(
+            functools.partial(form.kinetic_inverse, uniform=form.uniform_span(span))
+        ),
         max_iterations=max_steps,
         restart=restart,
     )
     sol = optx.root_find(
-        form.reduced_residual_and_forces, vi.root_finder, z0, (ctx, span, history),
+        reading(form.reduced_residual_and_forces), vi.root_finder, z0, (ctx, span, history),
         options=step_options(hints), has_aux=True,
         max_steps=max_steps, adjoint=vi.adjoint, throw=False,
     )
     if "max_iterations" in getattr(vi.root_finder, "hints_read", ()):
         sol = dataclasses.replace(sol, stats={**sol.stats, "num_steps": sol.state.iterations})
     return sol
+
+
+def _with_known_span(span) -> Callable[[tuple], tuple]:
+    """`args = (ctx, span, history) ↦ args` with `span` in place of the one in `args` where
+    `span` is known when the step is traced (a linear ansatz, a fixed hidden layer).
+    optimistix traces the `args` of a root find, so the span would reach the compiled solve
+    as a variable and every product with it would run as a kernel of its own; taken from
+    here it stays a constant that XLA folds, and the formulation can use its structure
+    (`uniform_span`)."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(span)):
+        return lambda args: args
+    return lambda args: (args[0], span, *args[2:])
 
 
 def solve_all(vi: Any, ctx: StepContext, seed: Seed):

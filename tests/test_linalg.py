@@ -48,3 +48,35 @@ def test_damped_least_squares_takes_any_shape_and_several_right_hand_sides(rows)
         one = damped_least_squares(jnp.asarray(jac), jnp.asarray(rhs[:, j]), jnp.sqrt(mu))
         assert one.shape == (12,)
         np.testing.assert_allclose(np.asarray(one), expected[:, j], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
+def test_unpivoted_inverse_in_a_row_order(dtype):
+    """Gauss–Jordan without pivoting inverts a matrix whose leading entries vanish in its own
+    row order but not in the given one, and works in float32 below 32 bits."""
+    from diffrax_vi.linalg import unpivoted_inverse
+
+    rng = np.random.default_rng(5)
+    n = 9
+    matrix = rng.standard_normal((n, n)) + 6 * np.eye(n)
+    # rows 0 and 7 swapped: a zero pivot in the given order, none in the order (7, ..., 0)
+    matrix[[0, 7]] = matrix[[7, 0]]
+    matrix[0, 0] = 0.0
+    order = np.arange(n)
+    order[[0, 7]] = [7, 0]
+    inverse = unpivoted_inverse(jnp.asarray(matrix, dtype), order)
+    work = jnp.float32 if dtype == jnp.float16 else dtype
+    assert inverse.dtype == work
+    eps = float(jnp.finfo(work).eps)
+    rounded = np.asarray(jnp.asarray(matrix, dtype), np.float64)
+    np.testing.assert_allclose(np.asarray(inverse, np.float64) @ rounded, np.eye(n), rtol=0,
+                               atol=100 * eps)
+
+
+def test_unpivoted_inverse_is_non_finite_at_a_zero_pivot():
+    """A vanishing pivot is not hidden: the caller sees non-finite entries and falls back."""
+    from diffrax_vi.linalg import unpivoted_inverse
+
+    matrix = jnp.array([[0.0, 1.0], [1.0, 0.0]])
+    assert not bool(jnp.all(jnp.isfinite(unpivoted_inverse(matrix))))
+    np.testing.assert_allclose(unpivoted_inverse(matrix, np.array([1, 0])), matrix)

@@ -515,3 +515,65 @@ def test_first_order_lagrangian_keeps_its_primary_constraint(activation, width, 
     # boundary value, as accurate as the step
     np.testing.assert_array_equal(p[:, 1], q[:, 0])
     assert np.max(np.abs(p[:, 0])) <= bound
+
+
+FREE_PARTICLE = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v)
+
+
+@pytest.mark.parametrize("case", ["cgvi double pendulum", "cgvi free particle", "network"])
+def test_reduced_jacobian_and_its_unpivoted_inverse(case):
+    """The Jacobian matches autodiff, also on a span that is the same in every coordinate
+    (`CGVI`: one product of constants with the Hessians), and `reduced_inverse` inverts it,
+    also for a free particle, whose constant direction has a zero diagonal entry."""
+    if case == "network":
+        problem, solver = problems.double_pendulum(), projected(dvi.tanh, 10, 16)
+        term, y0, args = problem.term, problem.y0, problem.args
+    else:
+        solver = dvi.CGVI(6)
+        if case == "cgvi free particle":
+            term, y0, args = FREE_PARTICLE, (jnp.array([0.3, -0.2]), jnp.array([1.0, 0.5])), None
+        else:
+            problem = problems.double_pendulum()
+            term, y0, args = problem.term, problem.y0, problem.args
+    ctx = solver.step_context(term, 0.0, 0.1, y0, args)
+    theta = jax.random.normal(jax.random.PRNGKey(0), (30, 2), dtype=y0[0].dtype)
+    form = solver.formulation
+    span = form.span(theta, ctx)
+    assert form.uniform_span(span) == (case != "network")
+    start = form.reduce(lambda tau: y0[0] + 0.3 * tau + 0.1 * tau**3, span, ctx)
+    z = (start, y0[1] + 0.1)
+    flat, unravel = jax.flatten_util.ravel_pytree(z)
+
+    def residual(v):
+        return jax.flatten_util.ravel_pytree(form.reduced_residual(unravel(v), (ctx, span)))[0]
+
+    jacobian = jax.jit(lambda z: form.reduced_jacobian(z, (ctx, span)))(z)
+    expected = jax.jit(jax.jacfwd(residual))(flat)
+    np.testing.assert_allclose(jacobian, expected, rtol=0,
+                               atol=1e-12 * float(jnp.max(jnp.abs(expected))))
+    inverse = jax.jit(lambda z: form.reduced_inverse(z, (ctx, span)))(z)
+    np.testing.assert_allclose(inverse @ jacobian, np.eye(flat.shape[0]), rtol=0, atol=1e-11)
+
+
+def test_a_span_known_when_traced_reaches_the_root_finder_as_a_constant():
+    """optimistix traces the `args` of a root find; the projected step's functions read a
+    span known when the step is traced from the step instead, so that it stays a constant
+    (and `uniform_span` holds inside the solve); a traced span is passed on as it is."""
+    from diffrax_vi.step_solve import _with_known_span
+
+    solver = dvi.CGVI(4)
+    problem = problems.double_pendulum()
+    ctx = solver.step_context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+    span = solver.formulation.span((), ctx)
+    seen = []
+
+    def inside(args):
+        fixed = _with_known_span(span)(args)
+        seen.append(solver.formulation.uniform_span(fixed[1]))
+        return fixed[1].gq.sum()
+
+    jax.jit(inside)((ctx, span, None))
+    assert seen == [True]
+    traced = []
+    jax.jit(lambda s: traced.append(_with_known_span(s)((ctx, s, None))[1] is s) or 0.0)(span)
+    assert traced == [True]
