@@ -19,9 +19,14 @@
 6. Round-off by prediction (`--only predict`): the chord iteration stopped once the
    contraction of its updates predicts what is left far below one rounding unit
    (`predict=True`), against `ftol=0` and Newton, on the three problems.
+7. The cheaper step, undone part by part (`--only ablation`): the default `CGVI(6)` step
+   against the same step with each of its cost cuts taken back (the span as a variable
+   inside optimistix, the Jacobian by per-coordinate contractions, the inverse by LAPACK,
+   the loop over the unknowns as a pytree, the second try's loop outside its lazy branch),
+   one at a time and all together, in one process.
 
     taskset -c 1 .venv/bin/python -m benchmarks.fixed_point \\
-        [--only cost|profile|hard|reuse|kinetic|predict] [--repeats 5] \\
+        [--only cost|profile|hard|reuse|kinetic|predict|ablation] [--repeats 5] \\
         > benchmarks/results/fixed_point.txt
 """
 
@@ -444,10 +449,133 @@ def predict(repeats: int) -> None:
                   f"{us[name] / us['Dopri8']:.2f} | {iters} | {err:.1e} |", flush=True)
 
 
+class _LapackStart(FixedPointIteration):
+    """The chord iteration with the start's inverse by LAPACK (no hint `inverse`)."""
+
+    def _start_factors(self, fn, y, args, options, dtype):
+        from diffrax_vi.fixed_point import _factor
+
+        return _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
+
+
+class _PytreeLoop(FixedPointIteration):
+    """The chord iteration whose loop carries the unknowns as their pytree."""
+
+    def _whole_solve_loop(self, fn, args, options, carry, limit):
+        return dvi.RoundoffNewton._whole_solve_loop(self, fn, args, options, carry, limit)
+
+
+class _SecondTryOutside(FixedPointIteration):
+    """The chord iteration with the restart in a lazy branch of its own and the second try's
+    loop after it (run, for no update, by every solve)."""
+
+    def _whole_solve(self, fn, y, args, options, state, hints):
+        from diffrax_vi.lazy import unless_all_skip
+
+        cap = hints.max_iterations
+        if hints.restart is None or hints.restart[0] >= cap:
+            return super()._whole_solve(fn, y, args, options, state, hints)
+        first_try, start = hints.restart
+        aux = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
+                                     jax.eval_shape(lambda: fn(y, args)[1]))
+        carry = self._whole_solve_loop(fn, args, options, (y, state, aux), first_try)
+        state = carry[1]
+        need = ~(state.converged | state.at_floor) & (state.iterations < cap)
+        carry = unless_all_skip(
+            need, lambda: self._restarted(fn, start(args), args, options, carry), carry)
+        return self._second_try()._whole_solve_loop(fn, args, options, carry, cap)
+
+
+def _per_coordinate_jacobian():
+    """`VariableProjection` whose Jacobian never uses the span's sameness across
+    coordinates."""
+    from diffrax_vi.projection import VariableProjection
+
+    class PerCoordinate(VariableProjection):
+        @staticmethod
+        def uniform_span(span):
+            return False
+
+    return PerCoordinate()
+
+
+def ablation(repeats: int) -> None:
+    """The default `CGVI(6)` step against itself with each cost cut undone (one at a time,
+    then all), `Dopri8` alongside: microseconds per constant step (median of interleaved
+    runs), ratio to `Dopri8`, iterations per step."""
+    import contextlib
+
+    import equinox as eqx
+
+    from diffrax_vi import step_solve
+
+    @contextlib.contextmanager
+    def span_as_variable(on):
+        # the projected step's functions read the span from optimistix's (traced) `args`
+        saved = step_solve._with_known_span
+        if on:
+            step_solve._with_known_span = lambda span: (lambda args: args)
+        try:
+            yield
+        finally:
+            step_solve._with_known_span = saved
+
+    base = dvi.CGVI(6)
+    rf = base.root_finder
+
+    def undone(*names):
+        cls = {frozenset(): FixedPointIteration,
+               frozenset({"inverse"}): _LapackStart,
+               frozenset({"loop"}): _PytreeLoop,
+               frozenset({"second"}): _SecondTryOutside}.get(frozenset(names) - {"span",
+                                                                                 "jacobian"})
+        if cls is None:  # all of them
+
+            class All(_LapackStart, _PytreeLoop, _SecondTryOutside):
+                pass
+
+            cls = All
+        solver = eqx.tree_at(lambda s: s.root_finder, base,
+                             cls(ftol=rf.ftol, predict=rf.predict))
+        if "jacobian" in names:
+            solver = eqx.tree_at(lambda s: s.formulation, solver, _per_coordinate_jacobian())
+        return solver, "span" in names
+
+    variants = {
+        "default CGVI(6)": undone(),
+        "span as a variable inside optimistix": undone("span"),
+        "Jacobian by per-coordinate contractions": undone("jacobian"),
+        "inverse by LAPACK": undone("inverse"),
+        "loop over the pytree of unknowns": undone("loop"),
+        "second try's loop outside its branch": undone("second"),
+        "all undone (the step before)": undone("span", "jacobian", "inverse", "loop",
+                                               "second"),
+    }
+    print(f"\nthe step's cost cuts undone: CGVI(6), us per step (median of {repeats} "
+          "interleaved runs; ratio to Dopri8), iterations per step")
+    print("| problem | variant | us per step | / Dopri8 | iterations per step |")
+    print("|---|---|---|---|---|")
+    for label, (make, kwargs, h, n) in CASES.items():
+        problem = make(**kwargs)
+        runs = {"Dopri8": _runner(problem, diffrax.Dopri8(), h, n)}
+        for name, (solver, variable) in variants.items():
+            run = _runner(problem, solver, h, n)
+            with span_as_variable(variable):
+                jax.block_until_ready(run(problem.y0))  # compiled under the variant
+            runs[name] = run
+        us = _interleaved_us(runs, problem.y0, n, repeats)
+        for name, run in runs.items():
+            _, ok, its = run(problem.y0)
+            iters = "-" if name == "Dopri8" else f"{int(its) / n:.2f}"
+            status = "" if bool(ok) else " (failed)"
+            print(f"| {label} | {name}{status} | {us[name]:.1f} | "
+                  f"{us[name] / us['Dopri8']:.2f} | {iters} |", flush=True)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", choices=("cost", "profile", "hard", "reuse", "kinetic",
-                                           "predict"), default=None)
+                                           "predict", "ablation"), default=None)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
     if args.only in (None, "cost"):
@@ -462,6 +590,8 @@ def main(argv=None) -> None:
         kinetic(args.repeats)
     if args.only in (None, "predict"):
         predict(args.repeats)
+    if args.only in (None, "ablation"):
+        ablation(args.repeats)
 
 
 if __name__ == "__main__":

@@ -323,6 +323,28 @@ class FixedPointIteration(RoundoffNewton):
                             state.restarted, factors, contraction, refreshes, fresh)
         return unravel(new), state, aux
 
+    def _whole_solve_loop(self, fn, args, options, carry, limit):
+        """`RoundoffNewton._whole_solve_loop`; where the updates use only the start's matrix
+        (no `refresh`, the Jacobian), the loop carries the unknowns as one flat vector: no
+        flattening and unflattening of them on every update."""
+        if self.refresh is not None or self.matrix != "jacobian":
+            return super()._whole_solve_loop(fn, args, options, carry, limit)
+        y, state, aux = carry
+        flat, unravel = ravel_pytree(y)
+
+        def flat_fn(v, args):
+            return fn(unravel(v), args)
+
+        def cond(carry):
+            done, _ = self._ended(carry[1])
+            return ~done & (carry[1].iterations < limit)
+
+        def body(carry):
+            return self._update(flat_fn, carry[0], args, options, carry[1])
+
+        v, state, aux = jax.lax.while_loop(cond, body, (flat, state, aux))
+        return unravel(v), state, aux
+
     def _second_try(self) -> FixedPointIteration:
         """After a restart, the Jacobian's chord iteration goes on with `refresh`
         (`SECOND_TRY_REFRESH` where none is set): an iteration that did not contract from

@@ -627,7 +627,9 @@ class RoundoffNewton(AbstractStepRootFinder):
     """Newton's method for a square system with an isolated root, run to round-off.
 
     Each iteration solves `J d = −F` by LU with a fresh Jacobian (the hint `jacobian`, a
-    function of the unknowns and `args`, where the caller gives one; else `jax.jacfwd`). Far
+    function of the unknowns and `args`, where the caller gives one; else `jax.jacfwd`), or
+    applies the hint `inverse` (the projected step's inverse by elimination without
+    pivoting) where the caller gives one and it is finite. Far
     from the root a backtracking line search halves the step until `max|F|` falls; within
     `floor` of the root the full step is always taken. The solve ends as converged when
     `max|F| ≤ ftol · scale` (the hint `scale`) after an update within `√eps` of the
@@ -670,7 +672,7 @@ class RoundoffNewton(AbstractStepRootFinder):
     """
 
     hints_read: ClassVar[frozenset[str]] = frozenset(
-        {"scale", "jacobian", "max_iterations", "restart"}
+        {"scale", "jacobian", "inverse", "max_iterations", "restart"}
     )
 
     ftol: float = 64.0
@@ -766,8 +768,19 @@ class RoundoffNewton(AbstractStepRootFinder):
         second = self._second_try()
         if second is not self:
             carry = self._whole_solve_loop(fn, args, options, carry, first_try)
-            carry = restarted(carry, unconverged(carry))
-            return second._whole_solve_loop(fn, args, options, carry, cap)
+            need = unconverged(carry)
+
+            def second_try():
+                # under `vmap`, only the members that need it move to the restart point
+                moved = jax.tree_util.tree_map(
+                    lambda a, b: jnp.where(need, a, b),
+                    self._restarted(fn, start(args), args, options, carry), carry,
+                )
+                return second._whole_solve_loop(fn, args, options, moved, cap)
+
+            # the restart and the second try's loop in one lazy branch: a solve that ended
+            # in its first try pays one test
+            return unless_all_skip(need, second_try, carry)
 
         def cond(outer):
             tries, carry = outer
@@ -822,7 +835,7 @@ class RoundoffNewton(AbstractStepRootFinder):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
 
-        d = solve(self._jacobian(fn, y, args, options).astype(dtype), -state.f)
+        d = self._direction(fn, y, args, options, state.f)
         fmax = jnp.max(jnp.abs(state.f))
         near = fmax <= self._tolerance("floor", dtype) * scale
         f_full, aux_full = residual(flat_y + d)
@@ -861,6 +874,22 @@ class RoundoffNewton(AbstractStepRootFinder):
         state = NewtonState(f_new, step_norm, converged, at_floor, stalls, iterations,
                             state.restarted)
         return unravel(new), state, aux
+
+    def _direction(self, fn, y, args, options, f: Array) -> Array:
+        """Newton's update `−J⁻¹ F` at `y`: with the hint `inverse` where the caller gives
+        one (the formulation's own inverse, cheaper than LAPACK at the sizes of a step; by
+        LU where it is not finite), else by LU of the Jacobian."""
+        dtype = f.dtype
+
+        def by_lu():
+            return solve(self._jacobian(fn, y, args, options).astype(dtype), -f)
+
+        given = hints_of(options).inverse
+        if given is None:
+            return by_lu()
+        inverse = given(y, args)
+        d = -(inverse @ f.astype(inverse.dtype)).astype(dtype)
+        return unless_all_skip(~jnp.all(jnp.isfinite(inverse)), by_lu, d)
 
     def _ended(self, state: NewtonState):
         """Whether the solve has ended at `state`, and how."""
