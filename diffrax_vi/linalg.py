@@ -64,13 +64,17 @@ def unpivoted_inverse(matrix: Array, order: Array | None = None) -> Array:
 
     def eliminate(k, a):
         # column k's elimination in place: row k scaled by its pivot, the others cleared in
-        # column k; column k ends as the inverse's column (the pivot row's slot holds 1/p)
-        row = jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)
-        column = jax.lax.dynamic_index_in_dim(a, k, 1, keepdims=False)
-        pivot_row = jnp.where(index == k, 1, row) / row[k]
-        multipliers = jnp.where(index == k, -1, column)
-        outside = (index[:, None] != k) & (index[None, :] != k)
-        return jnp.where(outside, a, 0) - multipliers[:, None] * pivot_row[None, :]
+        # column k; column k ends as the inverse's column (the pivot's slot holds 1/p). The
+        # outer product as a (n, 1) x (1, n) matrix product: fewer kernels on a CPU than
+        # the broadcast one.
+        row = jax.lax.dynamic_slice_in_dim(a, k, 1, 0)  # (1, n)
+        column = jax.lax.dynamic_slice_in_dim(a, k, 1, 1)  # (n, 1)
+        pivot = jax.lax.dynamic_slice_in_dim(row, k, 1, 1)  # (1, 1)
+        here = (index >= k) & (index < k + 1)  # (as a range: faster code than `==` here)
+        pivot_row = (1 / pivot) @ jnp.where(here[None, :], 1, row)
+        multipliers = jnp.where(here[:, None], -1, column)
+        outside = ~here[:, None] & ~here[None, :]
+        return jnp.where(outside, a, 0) - multipliers @ pivot_row
 
     a = jax.lax.fori_loop(0, n, eliminate, a)
     if order is not None:

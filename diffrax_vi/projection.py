@@ -768,19 +768,8 @@ class RoundoffNewton(AbstractStepRootFinder):
         second = self._second_try()
         if second is not self:
             carry = self._whole_solve_loop(fn, args, options, carry, first_try)
-            need = unconverged(carry)
-
-            def second_try():
-                # under `vmap`, only the members that need it move to the restart point
-                moved = jax.tree_util.tree_map(
-                    lambda a, b: jnp.where(need, a, b),
-                    self._restarted(fn, start(args), args, options, carry), carry,
-                )
-                return second._whole_solve_loop(fn, args, options, moved, cap)
-
-            # the restart and the second try's loop in one lazy branch: a solve that ended
-            # in its first try pays one test
-            return unless_all_skip(need, second_try, carry)
+            carry = restarted(carry, unconverged(carry))
+            return second._whole_solve_loop(fn, args, options, carry, cap)
 
         def cond(outer):
             tries, carry = outer
