@@ -8,8 +8,9 @@
    position error against the reference, ratio to Dopri8.
 2. Where a step's time goes on the double pendulum: one residual, one Jacobian
    (`reduced_jacobian`), its LU factorisation, its triangular solves, a dense solve, the
-   explicit inverse and a product with it, each inside a compiled loop at the second step's
-   root; then the whole solve of that step from the solver's start, against the diffrax step.
+   explicit inverse and a product with it, the inverse by elimination without pivoting, each
+   inside a compiled loop at the second step's root; then the whole solve of that step
+   from the solver's start, against the diffrax step.
 3. Harder steps: the double pendulum at longer steps and a stiff quartic spring, where the
    chord iteration slows down, refreshes its Jacobian or fails.
 4. The Jacobian carried from step to step: iterations of the chord iteration when each step
@@ -22,8 +23,8 @@
 7. The cheaper step, undone part by part (`--only ablation`): the default `CGVI(6)` step
    against the same step with each of its cost cuts taken back (the span as a variable
    inside optimistix, the Jacobian by per-coordinate contractions, the inverse by LAPACK,
-   the loop over the unknowns as a pytree, the second try's loop outside its lazy branch),
-   one at a time and all together, in one process.
+   the loop over the unknowns as a pytree), one at a time and all together, in one process
+   (median and least of the interleaved runs, in random order each round).
 
     taskset -c 1 .venv/bin/python -m benchmarks.fixed_point \\
         [--only cost|profile|hard|reuse|kinetic|predict|ablation] [--repeats 5] \\
@@ -48,6 +49,7 @@ import optimistix as optx  # noqa: E402
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.fixed_point import FixedPointIteration  # noqa: E402
+from diffrax_vi.linalg import unpivoted_inverse  # noqa: E402
 from diffrax_vi.seeding.policy import residual_scale  # noqa: E402
 
 CASES = {
@@ -98,15 +100,20 @@ def _median_us(fn, arg, n, repeats, best=False):
     return (min(times) if best else statistics.median(times)) / n * 1e6
 
 
-def _interleaved_us(runs, arg, n, repeats, best=False):
+def _interleaved_us(runs, arg, n, repeats, best=False, shuffle=False):
     """Median (or with `best`, also the least) microseconds per step of each compiled run,
-    timed in interleaved rounds (one run of each per round), so that a change in the
-    machine's load touches all alike."""
+    timed in interleaved rounds (one run of each per round, with `shuffle` in a random
+    order), so that a change in the machine's load touches all alike."""
     for run in runs.values():
         jax.block_until_ready(run(arg))
     times = {name: [] for name in runs}
+    order = list(runs)
+    rng = np.random.default_rng(0)
     for _ in range(repeats):
-        for name, run in runs.items():
+        if shuffle:
+            rng.shuffle(order)
+        for name in order:
+            run = runs[name]
             start = time.perf_counter()
             jax.block_until_ready(run(arg))
             times[name].append(time.perf_counter() - start)
@@ -191,6 +198,9 @@ def profile(repeats: int) -> None:
         return jax.flatten_util.ravel_pytree(form.reduced_residual(unravel(v), args))[0]
 
     jac = form.reduced_jacobian(z, args)
+    dim = z[1].shape[0]
+    order = np.arange(size)  # the row order of `reduced_inverse`: continuity rows first
+    order[:dim], order[size - dim:] = np.arange(size - dim, size), np.arange(dim)
     lu, piv = jax.scipy.linalg.lu_factor(jac)
     inv = jnp.linalg.inv(jac)
     eye = jnp.eye(size, dtype=jac.dtype)
@@ -215,6 +225,10 @@ def profile(repeats: int) -> None:
         "explicit inverse (LU + triangular solves with the identity)": lambda v: nudge(
             v, jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(jac + tiny * v[0]), eye)),
         "product with the inverse": lambda v: nudge(v, inv @ v),
+        "elimination without pivoting (unpivoted_inverse)": lambda v: nudge(
+            v, unpivoted_inverse(jac + tiny * v[0], order)),
+        "Jacobian and its inverse without pivoting (reduced_inverse)": lambda v: nudge(
+            v, form.reduced_inverse(unravel(v), args)),
     }
     print(f"\nwhere the time goes: double pendulum, h = {h}, CGVI(6), {size} unknowns, the "
           f"second step (us per call inside a compiled loop, least of {repeats} runs)")
@@ -453,9 +467,8 @@ class _LapackStart(FixedPointIteration):
     """The chord iteration with the start's inverse by LAPACK (no hint `inverse`)."""
 
     def _start_factors(self, fn, y, args, options, dtype):
-        from diffrax_vi.fixed_point import _factor
-
-        return _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
+        jac = self._jacobian(fn, y, args, options)
+        return (jnp.linalg.inv(jac.astype(dtype)),)
 
 
 class _PytreeLoop(FixedPointIteration):
@@ -463,27 +476,6 @@ class _PytreeLoop(FixedPointIteration):
 
     def _whole_solve_loop(self, fn, args, options, carry, limit):
         return dvi.RoundoffNewton._whole_solve_loop(self, fn, args, options, carry, limit)
-
-
-class _SecondTryOutside(FixedPointIteration):
-    """The chord iteration with the restart in a lazy branch of its own and the second try's
-    loop after it (run, for no update, by every solve)."""
-
-    def _whole_solve(self, fn, y, args, options, state, hints):
-        from diffrax_vi.lazy import unless_all_skip
-
-        cap = hints.max_iterations
-        if hints.restart is None or hints.restart[0] >= cap:
-            return super()._whole_solve(fn, y, args, options, state, hints)
-        first_try, start = hints.restart
-        aux = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
-                                     jax.eval_shape(lambda: fn(y, args)[1]))
-        carry = self._whole_solve_loop(fn, args, options, (y, state, aux), first_try)
-        state = carry[1]
-        need = ~(state.converged | state.at_floor) & (state.iterations < cap)
-        carry = unless_all_skip(
-            need, lambda: self._restarted(fn, start(args), args, options, carry), carry)
-        return self._second_try()._whole_solve_loop(fn, args, options, carry, cap)
 
 
 def _per_coordinate_jacobian():
@@ -512,13 +504,13 @@ def ablation(repeats: int) -> None:
     @contextlib.contextmanager
     def span_as_variable(on):
         # the projected step's functions read the span from optimistix's (traced) `args`
-        saved = step_solve._with_known_span
+        saved = step_solve.with_known_span
         if on:
-            step_solve._with_known_span = lambda span: (lambda args: args)
+            step_solve.with_known_span = lambda span: (lambda args: args)
         try:
             yield
         finally:
-            step_solve._with_known_span = saved
+            step_solve.with_known_span = saved
 
     base = dvi.CGVI(6)
     rf = base.root_finder
@@ -526,15 +518,13 @@ def ablation(repeats: int) -> None:
     def undone(*names):
         cls = {frozenset(): FixedPointIteration,
                frozenset({"inverse"}): _LapackStart,
-               frozenset({"loop"}): _PytreeLoop,
-               frozenset({"second"}): _SecondTryOutside}.get(frozenset(names) - {"span",
-                                                                                 "jacobian"})
-        if cls is None:  # all of them
+               frozenset({"loop"}): _PytreeLoop}.get(frozenset(names) - {"span", "jacobian"})
+        if cls is None:  # both
 
-            class All(_LapackStart, _PytreeLoop, _SecondTryOutside):
+            class Both(_LapackStart, _PytreeLoop):
                 pass
 
-            cls = All
+            cls = Both
         solver = eqx.tree_at(lambda s: s.root_finder, base,
                              cls(ftol=rf.ftol, predict=rf.predict))
         if "jacobian" in names:
@@ -547,14 +537,13 @@ def ablation(repeats: int) -> None:
         "Jacobian by per-coordinate contractions": undone("jacobian"),
         "inverse by LAPACK": undone("inverse"),
         "loop over the pytree of unknowns": undone("loop"),
-        "second try's loop outside its branch": undone("second"),
-        "all undone (the step before)": undone("span", "jacobian", "inverse", "loop",
-                                               "second"),
+        "all undone (the step before)": undone("span", "jacobian", "inverse", "loop"),
     }
-    print(f"\nthe step's cost cuts undone: CGVI(6), us per step (median of {repeats} "
-          "interleaved runs; ratio to Dopri8), iterations per step")
-    print("| problem | variant | us per step | / Dopri8 | iterations per step |")
-    print("|---|---|---|---|---|")
+    print(f"\nthe step's cost cuts undone: CGVI(6), us per step (median and least of "
+          f"{repeats} interleaved runs; ratio to Dopri8's), iterations per step")
+    print("| problem | variant | us per step | / Dopri8 | least us | / Dopri8's least | "
+          "iterations per step |")
+    print("|---|---|---|---|---|---|---|")
     for label, (make, kwargs, h, n) in CASES.items():
         problem = make(**kwargs)
         runs = {"Dopri8": _runner(problem, diffrax.Dopri8(), h, n)}
@@ -563,13 +552,14 @@ def ablation(repeats: int) -> None:
             with span_as_variable(variable):
                 jax.block_until_ready(run(problem.y0))  # compiled under the variant
             runs[name] = run
-        us = _interleaved_us(runs, problem.y0, n, repeats)
+        us, least = _interleaved_us(runs, problem.y0, n, repeats, best=True, shuffle=True)
         for name, run in runs.items():
             _, ok, its = run(problem.y0)
             iters = "-" if name == "Dopri8" else f"{int(its) / n:.2f}"
             status = "" if bool(ok) else " (failed)"
             print(f"| {label} | {name}{status} | {us[name]:.1f} | "
-                  f"{us[name] / us['Dopri8']:.2f} | {iters} |", flush=True)
+                  f"{us[name] / us['Dopri8']:.2f} | {least[name]:.1f} | "
+                  f"{least[name] / least['Dopri8']:.2f} | {iters} |", flush=True)
 
 
 def main(argv=None) -> None:

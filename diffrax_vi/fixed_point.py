@@ -266,7 +266,9 @@ class FixedPointIteration(RoundoffNewton):
         stalled = ~near & ~(lower & shrank)
         stalls = jnp.where(stalled, state.stalls + 1, 0)
         step_norm = norm
-        factors, refreshes, fresh = state.factors, state.refreshes, jnp.array(False)
+        # (without `refresh` nothing reads `fresh`: passed on as it is, it costs no copy)
+        fresh = state.fresh if self.refresh is None else jnp.array(False)
+        factors, refreshes = state.factors, state.refreshes
         need = None
         if self.refresh is not None:
             # A stalled chord update is undone and Newton's step taken from where the

@@ -35,7 +35,7 @@ from .step_hints import StepHints, step_options
 
 __all__ = [
     "FIRST_TRY", "ProjectedSolve", "companion_error", "jacobian_option",
-    "projected_root_find", "solve_all", "solve_projected",
+    "projected_root_find", "solve_all", "solve_projected", "with_known_span",
 ]
 
 # Iterations the projected step allows its start from the previous curve continued before it
@@ -112,7 +112,7 @@ def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, res
     at the nodes of the final iterate, and `stats["num_steps"]` the iterations made (by a
     root finder that runs the whole solve in one optimistix step, too)."""
     form = vi.formulation
-    fixed = _with_known_span(span)
+    fixed = with_known_span(span)
 
     def reading(f):
         return lambda z, args: f(z, fixed(args))
@@ -140,7 +140,7 @@ def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, res
     return sol
 
 
-def _with_known_span(span) -> Callable[[tuple], tuple]:
+def with_known_span(span) -> Callable[[tuple], tuple]:
     """`args = (ctx, span, history) ↦ args` with `span` in place of the one in `args` where
     `span` is known when the step is traced (a linear ansatz, a fixed hidden layer).
     optimistix traces the `args` of a root find, so the span would reach the compiled solve

@@ -559,7 +559,7 @@ def test_a_span_known_when_traced_reaches_the_root_finder_as_a_constant():
     """optimistix traces the `args` of a root find; the projected step's functions read a
     span known when the step is traced from the step instead, so that it stays a constant
     (and `uniform_span` holds inside the solve); a traced span is passed on as it is."""
-    from diffrax_vi.step_solve import _with_known_span
+    from diffrax_vi.step_solve import with_known_span
 
     solver = dvi.CGVI(4)
     problem = problems.double_pendulum()
@@ -568,12 +568,12 @@ def test_a_span_known_when_traced_reaches_the_root_finder_as_a_constant():
     seen = []
 
     def inside(args):
-        fixed = _with_known_span(span)(args)
+        fixed = with_known_span(span)(args)
         seen.append(solver.formulation.uniform_span(fixed[1]))
         return fixed[1].gq.sum()
 
     jax.jit(inside)((ctx, span, None))
     assert seen == [True]
     traced = []
-    jax.jit(lambda s: traced.append(_with_known_span(s)((ctx, s, None))[1] is s) or 0.0)(span)
+    jax.jit(lambda s: traced.append(with_known_span(s)((ctx, s, None))[1] is s) or 0.0)(span)
     assert traced == [True]
