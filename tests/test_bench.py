@@ -521,6 +521,7 @@ def test_speed_script_runs_the_sections_asked_for(monkeypatch, capsys, only, exp
     assert "invalid choice: 'everything'" in capsys.readouterr().err
 
 
+@pytest.mark.long  # about 45 s; `make test-long` runs it, CI does not
 def test_long_runs_script_reports_steps_restarts_and_energy(tmp_path, capsys, monkeypatch):
     """benchmarks.long_runs: a tiny oscillator run, with and without the restart switch,
     in one solve and in chunks resumed from a checkpoint."""
