@@ -51,6 +51,7 @@ from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.fixed_point import FixedPointIteration  # noqa: E402
 from diffrax_vi.linalg import unpivoted_inverse  # noqa: E402
 from diffrax_vi.seeding.policy import residual_scale  # noqa: E402
+from diffrax_vi.step_hints import StepHints, step_options  # noqa: E402
 
 CASES = {
     "oscillator (h = 0.5)": (problems.harmonic_oscillator, {}, 0.5, 4000),
@@ -155,7 +156,7 @@ def _warm_step(problem, h):
     dim, dtype = q.shape[0], q.dtype
 
     def root(ctx, span, z0):
-        options = dict(scale=residual_scale(ctx), jacobian=form.reduced_jacobian)
+        options = step_options(StepHints(scale=residual_scale(ctx), jacobian=form.reduced_jacobian))
         return optx.root_find(form.reduced_residual, dvi.RoundoffNewton(ftol=0.0), z0,
                               (ctx, span), options=options, max_steps=50).value
 
@@ -207,7 +208,8 @@ def profile(repeats: int) -> None:
 
     def solve_with(rf):
         def body(v):
-            options = dict(scale=residual_scale(ctx), jacobian=form.reduced_jacobian)
+            options = step_options(StepHints(scale=residual_scale(ctx),
+                                             jacobian=form.reduced_jacobian))
             sol = optx.root_find(form.reduced_residual, rf, unravel(v), args, options=options,
                                  max_steps=50, throw=False)
             return nudge(v, jax.flatten_util.ravel_pytree(sol.value)[0])
@@ -253,7 +255,7 @@ def profile(repeats: int) -> None:
           "us per diffrax step | rest of the step | step / Dopri8 step |")
     print("|---|---|---|---|---|---|")
     for name, rf in solves.items():
-        options = dict(scale=residual_scale(ctx), jacobian=form.reduced_jacobian)
+        options = step_options(StepHints(scale=residual_scale(ctx), jacobian=form.reduced_jacobian))
         its = int(optx.root_find(form.reduced_residual, rf, z0, args, options=options,
                                  max_steps=50).stats["num_steps"])
         us = _loop_us(solve_with(rf), flat0, reps=500, repeats=repeats)
