@@ -333,18 +333,9 @@ class FixedPointIteration(RoundoffNewton):
             return super()._whole_solve_loop(fn, args, options, carry, limit)
         y, state, aux = carry
         flat, unravel = ravel_pytree(y)
-
-        def flat_fn(v, args):
-            return fn(unravel(v), args)
-
-        def cond(carry):
-            done, _ = self._ended(carry[1])
-            return ~done & (carry[1].iterations < limit)
-
-        def body(carry):
-            return self._update(flat_fn, carry[0], args, options, carry[1])
-
-        v, state, aux = jax.lax.while_loop(cond, body, (flat, state, aux))
+        v, state, aux = super()._whole_solve_loop(
+            lambda v, args: fn(unravel(v), args), args, options, (flat, state, aux), limit
+        )
         return unravel(v), state, aux
 
     def _second_try(self) -> FixedPointIteration:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from .precision import lapack_dtype
@@ -45,9 +46,10 @@ def damped_least_squares(matrix: Array, rhs: Array, sqrt_mu: Array) -> Array:
     return (d[:, 0] if column else d).astype(dtype)
 
 
-def unpivoted_inverse(matrix: Array, order: Array | None = None) -> Array:
+def unpivoted_inverse(matrix: Array, order: np.ndarray | None = None) -> Array:
     """`matrix⁻¹` by Gauss–Jordan elimination without pivoting, taking the rows in `order`
-    (a fixed permutation that puts large entries on the diagonal; default: as they are).
+    (a fixed permutation, known when traced, that puts large entries on the diagonal;
+    default: as they are).
 
     One compiled loop over the columns, each elimination one fused rank-one update: at the
     sizes of a step (tens of unknowns) on a CPU it launches far fewer kernels than LAPACK's
@@ -56,10 +58,16 @@ def unpivoted_inverse(matrix: Array, order: Array | None = None) -> Array:
     zero pivot makes the result non-finite, which the caller must check. Below 32 bits it
     works in float32, as the factorisations do.
     """
+    if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
+        raise ValueError(f"unpivoted_inverse needs a square matrix, got shape {matrix.shape}")
     n = matrix.shape[-1]
+    if order is not None:
+        order = np.asarray(order)
+        if order.shape != (n,) or not np.array_equal(np.sort(order), np.arange(n)):
+            raise ValueError(f"order must be a permutation of range({n}), got {order!r}")
     a = matrix.astype(lapack_dtype(matrix.dtype))
     if order is not None:
-        a = a[jnp.asarray(order)]
+        a = a[order]
     index = jnp.arange(n)
 
     def eliminate(k, a):
@@ -79,5 +87,5 @@ def unpivoted_inverse(matrix: Array, order: Array | None = None) -> Array:
     a = jax.lax.fori_loop(0, n, eliminate, a)
     if order is not None:
         # (P A)⁻¹ = A⁻¹ P⁻¹: the inverse of `matrix` has the columns of `a` in row order
-        a = a[:, jnp.argsort(jnp.asarray(order))]
+        a = a[:, np.argsort(order)]
     return a

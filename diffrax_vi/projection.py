@@ -878,7 +878,8 @@ class RoundoffNewton(AbstractStepRootFinder):
             return by_lu()
         inverse = given(y, args)
         d = -(inverse @ f.astype(inverse.dtype)).astype(dtype)
-        return unless_all_skip(~jnp.all(jnp.isfinite(inverse)), by_lu, d)
+        # a non-finite inverse makes the update non-finite: testing the update is cheaper
+        return unless_all_skip(~jnp.all(jnp.isfinite(d)), by_lu, d)
 
     def _ended(self, state: NewtonState):
         """Whether the solve has ended at `state`, and how."""

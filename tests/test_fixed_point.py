@@ -513,3 +513,25 @@ def test_the_hint_inverse_starts_the_iteration(given, newton):
     np.testing.assert_allclose(np.asarray(sol.value), [1.0, 2.0], rtol=0, atol=4e-16)
     if not newton:
         assert bool(jnp.all(jnp.isfinite(sol.state.factors[0])))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
+def test_default_cgvi_on_two_coordinates_stays_in_its_dtype(dtype):
+    """The default step's start on two coordinates (the Jacobian as one product, the inverse
+    by elimination, which runs in float32 below 32 bits) keeps the state in its dtype and
+    ends near the float64 run."""
+    term = dvi.LagrangianTerm(
+        lambda t, q, v, args: 0.5 * v @ v - 0.5 * q @ q - 0.1 * q[0] ** 2 * q[1])
+
+    def run(dtype):
+        y0 = (jnp.array([0.5, 0.2], dtype), jnp.array([0.0, 0.3], dtype))
+        t0, t1, dt = (jnp.asarray(x, dtype) for x in (0.0, 2.0, 0.25))
+        return diffrax.diffeqsolve(term, dvi.CGVI(4), t0, t1, dt, y0, max_steps=8,
+                                   throw=False)
+
+    sol, ref = run(dtype), run(jnp.float64)
+    assert sol.result == diffrax.RESULTS.successful
+    assert sol.ys[0].dtype == dtype and sol.ys[1].dtype == dtype
+    eps = float(jnp.finfo(dtype).eps)
+    np.testing.assert_allclose(np.asarray(sol.ys[0], np.float64), np.asarray(ref.ys[0]),
+                               rtol=0, atol=16 * eps)

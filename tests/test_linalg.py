@@ -80,3 +80,14 @@ def test_unpivoted_inverse_is_non_finite_at_a_zero_pivot():
     matrix = jnp.array([[0.0, 1.0], [1.0, 0.0]])
     assert not bool(jnp.all(jnp.isfinite(unpivoted_inverse(matrix))))
     np.testing.assert_allclose(unpivoted_inverse(matrix, np.array([1, 0])), matrix)
+
+
+def test_unpivoted_inverse_refuses_what_it_cannot_invert_by_name():
+    from diffrax_vi.linalg import unpivoted_inverse
+
+    with pytest.raises(ValueError, match="square matrix"):
+        unpivoted_inverse(jnp.ones((2, 3)))
+    with pytest.raises(ValueError, match="permutation"):
+        unpivoted_inverse(jnp.eye(3), np.array([0, 0, 1]))
+    with pytest.raises(ValueError, match="permutation"):
+        unpivoted_inverse(jnp.eye(3), np.array([0, 1]))
