@@ -36,6 +36,10 @@ __all__ = ["FixedPointIteration"]
 # iteration leaves behind cannot build up to a drift.
 PREDICT_MARGIN = 1024
 
+# An update within this many rounding units of the largest unknown is taken as rounding noise
+# by `predict`: its ratio to the update before it says nothing about the iteration's rate.
+NOISE_UPDATE = 4
+
 # The `refresh` of the updates after a restart (`FixedPointIteration._second_try`).
 SECOND_TRY_REFRESH = 0.5
 
@@ -133,8 +137,10 @@ class FixedPointIteration(RoundoffNewton):
       ratios of successive updates) predicts a remaining error `θ/(1 − θ)·max|Δz|` below
       `1/1024` of a rounding unit of the unknowns, with the residual within `floor`: the
       round-off limit without the updates that only confirm it (with `ftol=0`, a solve to
-      round-off in about half the updates; the benchmarks page). Never after the first
-      update. Default `False`.
+      round-off in about half the updates; the benchmarks page). An update within a few
+      rounding units of the unknowns is rounding noise, whose ratio to the update before
+      says nothing of the rate: there the ratio before it is the rate, and the noise's size
+      the update. Never after the first update. Default `False`.
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 
@@ -297,8 +303,17 @@ class FixedPointIteration(RoundoffNewton):
             slowing = known & (rate < 1)
             remaining = rate / jnp.where(slowing, 1 - rate, 1) * norm
             eps = float(jnp.finfo(dtype).eps)
+            # An update at the rounding noise has a ratio of noise to signal, not the rate:
+            # there the rate is the ratio before it, and what is left is that rate times
+            # the noise's size (or less).
+            noise = NOISE_UPDATE * eps * size
+            earlier = state.contraction
+            at_noise = (norm <= noise) & (earlier > 0) & (earlier < 1)
+            remaining = jnp.where(
+                at_noise, jnp.minimum(remaining, earlier / (1 - earlier) * noise), remaining
+            )
             converged = converged | (
-                slowing & (fmax_new <= floor)
+                (slowing | at_noise) & (fmax_new <= floor)
                 & (remaining <= eps / PREDICT_MARGIN * size)
             )
         # Rounding has taken over once an update near the root is no smaller than the one

@@ -535,3 +535,26 @@ def test_default_cgvi_on_two_coordinates_stays_in_its_dtype(dtype):
     eps = float(jnp.finfo(dtype).eps)
     np.testing.assert_allclose(np.asarray(sol.ys[0], np.float64), np.asarray(ref.ys[0]),
                                rtol=0, atol=16 * eps)
+
+
+@pytest.mark.parametrize("earlier, stops", [(1e-5, True), (0.5, False), (0.0, False)])
+def test_predict_stops_at_an_update_that_is_rounding_noise(earlier, stops):
+    # The iteration stands one rounding unit from F(z) = z - 1 + 1e-20 (identity matrix; the
+    # 1e-20, lost when z is rounded, keeps the residual off zero, so `ftol=0` cannot end it),
+    # after an update of 5e-14 that had contracted by `earlier`. The next update is rounding
+    # noise: its ratio to the one before (4e-3) is not the rate; what is left is `earlier`
+    # times the noise. A fast rate (1e-5) ends the solve there; a slow one, or none known
+    # (the first update), does not.
+    rf = FixedPointIteration(ftol=0.0, predict=True)
+    eps = float(jnp.finfo(jnp.float64).eps)
+    y = jnp.array([1.0 + eps, 0.5])
+
+    def fn(z, args):
+        return z - jnp.array([1.0, 0.5]) + 1e-20, None
+
+    state = rf.init(fn, y, None, {}, None, None, frozenset())
+    state = eqx.tree_at(lambda s: (s.step_norm, s.contraction), state,
+                        (jnp.asarray(5e-14), jnp.asarray(earlier)))
+    new, state, _ = rf._update(fn, y, None, {}, state)
+    np.testing.assert_array_equal(new, [1.0, 0.5])
+    assert bool(state.converged) is stops
