@@ -23,7 +23,8 @@
 7. The cheaper step, undone part by part (`--only ablation`): the default `CGVI(6)` step
    against the same step with each of its cost cuts taken back (the span as a variable
    inside optimistix, the Jacobian by per-coordinate contractions, the inverse by LAPACK,
-   the loop over the unknowns as a pytree), one at a time and all together, in one process
+   the state's scalars carried one by one through the loop, the loop over the unknowns as
+   a pytree with its scalars one by one), one at a time and all together, in one process
    (median and least of the interleaved runs, in random order each round).
 
     taskset -c 1 .venv/bin/python -m benchmarks.fixed_point \\
@@ -45,6 +46,7 @@ import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
+from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
@@ -473,11 +475,40 @@ class _LapackStart(FixedPointIteration):
         return (jnp.linalg.inv(jac.astype(dtype)),)
 
 
-class _PytreeLoop(FixedPointIteration):
-    """The chord iteration whose loop carries the unknowns as their pytree."""
+def _plain_loop(solver, fn, args, options, carry, limit):
+    """The solve's loop carrying `carry = (y, state, aux)` as it is: each scalar of the
+    state, and the start's matrix, on its own."""
+
+    def cond(carry):
+        done, _ = solver._ended(carry[1])
+        return ~done & (carry[1].iterations < limit)
+
+    def body(carry):
+        return solver._update(fn, carry[0], args, options, carry[1])
+
+    return jax.lax.while_loop(cond, body, carry)
+
+
+class _ScalarsApart(FixedPointIteration):
+    """The chord iteration whose loop carries the unknowns flat but the state's scalars
+    (and the start's matrix) each on their own."""
 
     def _whole_solve_loop(self, fn, args, options, carry, limit):
-        return dvi.RoundoffNewton._whole_solve_loop(self, fn, args, options, carry, limit)
+        if self.refresh is not None:  # the second try's updates (as before: a pytree)
+            return _plain_loop(self, fn, args, options, carry, limit)
+        y, state, aux = carry
+        flat, unravel = ravel_pytree(y)
+        v, state, aux = _plain_loop(self, lambda v, args: fn(unravel(v), args), args,
+                                    options, (flat, state, aux), limit)
+        return unravel(v), state, aux
+
+
+class _PytreeLoop(FixedPointIteration):
+    """The chord iteration whose loop carries the unknowns as their pytree and each scalar
+    of its state on its own."""
+
+    def _whole_solve_loop(self, fn, args, options, carry, limit):
+        return _plain_loop(self, fn, args, options, carry, limit)
 
 
 def _per_coordinate_jacobian():
@@ -520,6 +551,7 @@ def ablation(repeats: int) -> None:
     def undone(*names):
         cls = {frozenset(): FixedPointIteration,
                frozenset({"inverse"}): _LapackStart,
+               frozenset({"scalars"}): _ScalarsApart,
                frozenset({"loop"}): _PytreeLoop}.get(frozenset(names) - {"span", "jacobian"})
         if cls is None:  # both
 
@@ -538,8 +570,9 @@ def ablation(repeats: int) -> None:
         "span as a variable inside optimistix": undone("span"),
         "Jacobian by per-coordinate contractions": undone("jacobian"),
         "inverse by LAPACK": undone("inverse"),
-        "loop over the pytree of unknowns": undone("loop"),
-        "all undone (the step before)": undone("span", "jacobian", "inverse", "loop"),
+        "scalars carried one by one": undone("scalars"),
+        "loop over the pytree of unknowns, scalars one by one": undone("loop"),
+        "all undone": undone("span", "jacobian", "inverse", "loop"),
     }
     print(f"\nthe step's cost cuts undone: CGVI(6), us per step (median and least of "
           f"{repeats} interleaved runs; ratio to Dopri8's), iterations per step")

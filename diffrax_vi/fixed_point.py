@@ -353,6 +353,12 @@ class FixedPointIteration(RoundoffNewton):
         )
         return unravel(v), state, aux
 
+    def _loop_constants(self) -> tuple[str, ...]:
+        """Without `refresh`, the updates keep the start's matrix and its bookkeeping."""
+        if self.refresh is None:
+            return ("restarted", "factors", "refreshes", "fresh")
+        return super()._loop_constants()
+
     def _second_try(self) -> FixedPointIteration:
         """After a restart, the Jacobian's chord iteration goes on with `refresh`
         (`SECOND_TRY_REFRESH` where none is set): an iteration that did not contract from

@@ -30,10 +30,11 @@ The accuracy of the step is the accuracy of the span.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -623,6 +624,53 @@ class NewtonState(eqx.Module):
     restarted: Array
 
 
+class _LoopLayout(eqx.Module):
+    """How a root finder's state rides through its loop: the fields its updates never
+    change (`constant`) stay outside the loop, and its scalars are stacked as one vector in
+    the widest of their floating dtypes, float32 at least, where counts and flags are
+    exact."""
+
+    treedef: Any = eqx.field(static=True)
+    scalar: tuple[bool, ...] = eqx.field(static=True)
+    dtypes: tuple[Any, ...] = eqx.field(static=True)
+    work: Any = eqx.field(static=True)
+    constant: dict
+
+    @classmethod
+    def of(cls, state, constant: tuple[str, ...]) -> _LoopLayout:
+        leaves, treedef = jax.tree_util.tree_flatten(
+            dataclasses.replace(state, **dict.fromkeys(constant))
+        )
+        scalar = tuple(jnp.ndim(leaf) == 0 for leaf in leaves)
+        dtypes = tuple(jnp.result_type(leaf) for leaf in leaves)
+        floats = [d for d, s in zip(dtypes, scalar, strict=True)
+                  if s and jnp.issubdtype(d, jnp.floating)]
+        work = jnp.result_type(jnp.float32, *floats)
+        return cls(treedef, scalar, dtypes, work, {n: getattr(state, n) for n in constant})
+
+    def pack(self, state) -> tuple[list, Array]:
+        """The loop's carry of `state`: its other leaves, and its scalars as one vector."""
+        leaves = jax.tree_util.tree_leaves(
+            dataclasses.replace(state, **dict.fromkeys(self.constant))
+        )
+        rest = [leaf for leaf, s in zip(leaves, self.scalar, strict=True) if not s]
+        packed = jnp.stack([jnp.asarray(leaf).astype(self.work)
+                            for leaf, s in zip(leaves, self.scalar, strict=True) if s])
+        return rest, packed
+
+    def unpack(self, rest: list, packed: Array):
+        """The state from `pack`'s output."""
+        rest, leaves, k = iter(rest), [], 0
+        for s, dtype in zip(self.scalar, self.dtypes, strict=True):
+            if s:
+                leaves.append(packed[k] != 0 if dtype == jnp.bool_ else packed[k].astype(dtype))
+                k += 1
+            else:
+                leaves.append(next(rest))
+        state = jax.tree_util.tree_unflatten(self.treedef, leaves)
+        return dataclasses.replace(state, **self.constant)
+
+
 class RoundoffNewton(AbstractStepRootFinder):
     """Newton's method for a square system with an isolated root, run to round-off.
 
@@ -783,22 +831,37 @@ class RoundoffNewton(AbstractStepRootFinder):
 
         return jax.lax.while_loop(cond, body, (jnp.array(0, jnp.int32), carry))[1]
 
+    def _loop_constants(self) -> tuple[str, ...]:
+        """The fields of the state that `_update` never changes (kept out of the loop)."""
+        return ("restarted",)
+
     def _second_try(self) -> RoundoffNewton:
         """The root finder whose updates follow a restart (this one)."""
         return self
 
     def _whole_solve_loop(self, fn, args, options, carry, limit):
         """`_update` from `carry = (y, state, aux)` until the solve ends or has made `limit`
-        updates in all."""
+        updates in all.
+
+        The loop carries the state's scalars (norms, flags, counts) as one small vector, and
+        not the fields the updates leave alone (`_loop_constants`): an update then ends in a
+        few kernels instead of one for each scalar and its copy, which at the sizes of a
+        step cost as much as the residual."""
+        y, state, aux = carry
+        scalars = _LoopLayout.of(state, self._loop_constants())
 
         def cond(carry):
-            done, _ = self._ended(carry[1])
-            return ~done & (carry[1].iterations < limit)
+            state = scalars.unpack(carry[1], carry[2])
+            done, _ = self._ended(state)
+            return ~done & (state.iterations < limit)
 
         def body(carry):
-            return self._update(fn, carry[0], args, options, carry[1])
+            y, state, aux = self._update(fn, carry[0], args, options,
+                                         scalars.unpack(carry[1], carry[2]))
+            return (y, *scalars.pack(state), aux)
 
-        return jax.lax.while_loop(cond, body, carry)
+        y, rest, packed, aux = jax.lax.while_loop(cond, body, (y, *scalars.pack(state), aux))
+        return y, scalars.unpack(rest, packed), aux
 
     def _restarted(self, fn, start, args, options, carry):
         """`carry = (y, state, aux)` moved to the point `start`, with fresh bookkeeping."""

@@ -558,3 +558,44 @@ def test_predict_stops_at_an_update_that_is_rounding_noise(earlier, stops):
     new, state, _ = rf._update(fn, y, None, {}, state)
     np.testing.assert_array_equal(new, [1.0, 0.5])
     assert bool(state.converged) is stops
+
+
+# -- the loop's carry ------------------------------------------------------------------------------
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
+def test_loop_layout_packs_and_restores_the_state_exactly(dtype):
+    from diffrax_vi.projection import _LoopLayout
+
+    rf = FixedPointIteration(ftol=0.0, predict=True)
+    state = rf.init(lambda z, a: (z * z - 2, None), jnp.ones(3, dtype), None, {}, None, None,
+                    frozenset())
+    state = eqx.tree_at(lambda s: (s.step_norm, s.contraction, s.stalls, s.iterations,
+                                   s.at_floor),
+                        state, (jnp.asarray(3e-4, dtype), jnp.asarray(0.125, dtype),
+                                jnp.asarray(2, jnp.int32), jnp.asarray(4099, jnp.int32),
+                                jnp.array(True)))
+    layout = _LoopLayout.of(state, rf._loop_constants())
+    rest, packed = layout.pack(state)
+    # the scalars that change ride as one vector (float32 at least); the matrix stays out
+    assert packed.ndim == 1 and packed.dtype == jnp.result_type(jnp.float32, dtype)
+    assert all(leaf.ndim == 1 for leaf in rest)  # only the residual
+    back = layout.unpack(rest, packed)
+    for a, b in zip(jax.tree_util.tree_leaves(state), jax.tree_util.tree_leaves(back),
+                    strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("refresh", [None, 0.5])
+def test_loop_constants_are_what_an_update_leaves_alone(refresh):
+    rf = FixedPointIteration(ftol=0.0, refresh=refresh)
+
+    def fn(z, args):
+        return z * z * z - jnp.array([2.0, 3.0]), None
+
+    y = jnp.array([1.5, 1.0])
+    state = rf.init(fn, y, None, {}, None, None, frozenset())
+    _, after, _ = rf._update(fn, y, None, {}, state)
+    for name in rf._loop_constants():
+        for a, b in zip(jax.tree_util.tree_leaves(getattr(state, name)),
+                        jax.tree_util.tree_leaves(getattr(after, name)), strict=True):
+            np.testing.assert_array_equal(a, b)
