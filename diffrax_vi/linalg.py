@@ -56,7 +56,8 @@ def unpivoted_inverse(matrix: Array, order: np.ndarray | None = None) -> Array:
     LU and triangular solves, and under `vmap` it is plain batched arithmetic. Without
     pivoting it suits only matrices whose leading minors, in `order`, stay away from zero; a
     zero pivot makes the result non-finite, which the caller must check. Below 32 bits it
-    works in float32, as the factorisations do.
+    works in float32, as the factorisations do. Under `vmap` the members sit on the last
+    axis, so that each update runs over all members at once in contiguous memory.
     """
     if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
         raise ValueError(f"unpivoted_inverse needs a square matrix, got shape {matrix.shape}")
@@ -68,6 +69,17 @@ def unpivoted_inverse(matrix: Array, order: np.ndarray | None = None) -> Array:
     a = matrix.astype(lapack_dtype(matrix.dtype))
     if order is not None:
         a = a[order]
+    a = _gauss_jordan(a)
+    if order is not None:
+        # (P A)⁻¹ = A⁻¹ P⁻¹: the inverse of `matrix` has the columns of `a` in row order
+        a = a[:, np.argsort(order)]
+    return a
+
+
+@jax.custom_batching.custom_vmap
+def _gauss_jordan(a: Array) -> Array:
+    """The inverse of `a` by Gauss–Jordan elimination in place, without pivoting."""
+    n = a.shape[-1]
     index = jnp.arange(n)
 
     def eliminate(k, a):
@@ -84,8 +96,29 @@ def unpivoted_inverse(matrix: Array, order: np.ndarray | None = None) -> Array:
         outside = ~here[:, None] & ~here[None, :]
         return jnp.where(outside, a, 0) - multipliers @ pivot_row
 
-    a = jax.lax.fori_loop(0, n, eliminate, a)
-    if order is not None:
-        # (P A)⁻¹ = A⁻¹ P⁻¹: the inverse of `matrix` has the columns of `a` in row order
-        a = a[:, np.argsort(order)]
-    return a
+    return jax.lax.fori_loop(0, n, eliminate, a)
+
+
+@_gauss_jordan.def_vmap
+def _gauss_jordan_members(axis_size, in_batched, a):
+    """`_gauss_jordan` of many members: the same elimination with the members on the last
+    axis, where every step is one update over all of them (a vmap of the loop above would
+    keep them first, and each member's small matrix apart)."""
+    del axis_size
+    if not in_batched[0]:
+        return _gauss_jordan(a), False
+    a = jnp.moveaxis(a, 0, -1)  # (n, n, members)
+    n = a.shape[0]
+    index = jnp.arange(n)
+
+    def eliminate(k, a):
+        row = jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # (n, members)
+        column = jax.lax.dynamic_index_in_dim(a, k, 1, keepdims=False)  # (n, members)
+        pivot = jax.lax.dynamic_index_in_dim(row, k, 0, keepdims=False)  # (members,)
+        here = (index == k)[:, None]
+        pivot_row = (1 / pivot) * jnp.where(here, 1, row)  # (as in the loop above)
+        multipliers = jnp.where(here, -1, column)
+        outside = ~here[:, None] & ~here[None, :]
+        return jnp.where(outside, a, 0) - multipliers[:, None, :] * pivot_row[None, :, :]
+
+    return jnp.moveaxis(jax.lax.fori_loop(0, n, eliminate, a), -1, 0), True

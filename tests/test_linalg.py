@@ -91,3 +91,29 @@ def test_unpivoted_inverse_refuses_what_it_cannot_invert_by_name():
         unpivoted_inverse(jnp.eye(3), np.array([0, 0, 1]))
     with pytest.raises(ValueError, match="permutation"):
         unpivoted_inverse(jnp.eye(3), np.array([0, 1]))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
+@pytest.mark.parametrize("n", [3, 10, 16])
+def test_unpivoted_inverse_under_vmap_is_the_loop_of_single_inverses(dtype, n):
+    """Under `vmap` the elimination runs with the members on the last axis (one update over
+    all of them per column): the same arithmetic in the same order, so every member's
+    inverse is the single one to the bit, in a row order, and under nested `vmap`s (in
+    float32 below 32 bits, as the single one)."""
+    import jax
+
+    from diffrax_vi.linalg import unpivoted_inverse
+
+    rng = np.random.default_rng(n)
+    matrices = jnp.asarray(rng.standard_normal((2, 5, n, n)) + 4 * np.eye(n), dtype)
+    order = np.roll(np.arange(n), 1)
+    for rows in (None, order):
+        def inverse(a, rows=rows):
+            return unpivoted_inverse(a, rows)
+
+        single = jax.jit(inverse)
+        loop = jnp.stack([jnp.stack([single(a) for a in group]) for group in matrices])
+        mapped = jax.jit(jax.vmap(jax.vmap(inverse)))(matrices)
+        assert mapped.dtype == loop.dtype == jnp.result_type(dtype, jnp.float32)  # its work
+        np.testing.assert_array_equal(mapped, loop)
+        np.testing.assert_array_equal(jax.jit(jax.vmap(inverse))(matrices[0]), loop[0])
