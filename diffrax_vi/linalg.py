@@ -69,11 +69,25 @@ def unpivoted_inverse(matrix: Array, order: np.ndarray | None = None) -> Array:
     a = matrix.astype(lapack_dtype(matrix.dtype))
     if order is not None:
         a = a[order]
-    a = _gauss_jordan(a)
+    a = _inverse(a)
     if order is not None:
         # (P A)⁻¹ = A⁻¹ P⁻¹: the inverse of `matrix` has the columns of `a` in row order
         a = a[:, np.argsort(order)]
     return a
+
+
+@jax.custom_jvp
+def _inverse(a: Array) -> Array:
+    """`a⁻¹` by `_gauss_jordan`, differentiated as an inverse (`d(A⁻¹) = −A⁻¹ dA A⁻¹`): the
+    batching rule below has no derivative of its own."""
+    return _gauss_jordan(a)
+
+
+@_inverse.defjvp
+def _inverse_jvp(primals, tangents):
+    (a,), (da,) = primals, tangents
+    inverse = _inverse(a)
+    return inverse, -inverse @ da @ inverse
 
 
 @jax.custom_batching.custom_vmap

@@ -117,3 +117,28 @@ def test_unpivoted_inverse_under_vmap_is_the_loop_of_single_inverses(dtype, n):
         assert mapped.dtype == loop.dtype == jnp.result_type(dtype, jnp.float32)  # its work
         np.testing.assert_array_equal(mapped, loop)
         np.testing.assert_array_equal(jax.jit(jax.vmap(inverse))(matrices[0]), loop[0])
+
+
+def test_unpivoted_inverse_differentiates_as_an_inverse_alone_and_under_vmap():
+    """Forward and reverse mode, alone and under `vmap` (whose batching rule has no
+    derivative of its own): the derivative of the inverse, `−A⁻¹ dA A⁻¹`."""
+    import jax
+
+    from diffrax_vi.linalg import unpivoted_inverse
+
+    rng = np.random.default_rng(7)
+    matrices = jnp.asarray(rng.standard_normal((4, 6, 6)) + 5 * np.eye(6))
+    order = np.array([1, 0, 2, 3, 5, 4])
+
+    def loss(inverse):
+        return lambda a: jnp.sum(jnp.sin(inverse(a)))
+
+    ours = loss(lambda a: unpivoted_inverse(a, order))
+    lapack = loss(jnp.linalg.inv)
+    expected = jax.vmap(jax.grad(lapack))(matrices)
+    np.testing.assert_allclose(jax.vmap(jax.grad(ours))(matrices), expected, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(
+        jax.grad(lambda m: jnp.sum(jax.vmap(ours)(m)))(matrices), expected, rtol=0, atol=1e-14
+    )
+    np.testing.assert_allclose(jax.jacfwd(lambda a: unpivoted_inverse(a, order))(matrices[0]),
+                               jax.jacfwd(jnp.linalg.inv)(matrices[0]), rtol=0, atol=1e-14)
