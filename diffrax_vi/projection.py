@@ -848,20 +848,20 @@ class RoundoffNewton(AbstractStepRootFinder):
         few kernels instead of one for each scalar and its copy, which at the sizes of a
         step cost as much as the residual."""
         y, state, aux = carry
-        scalars = _LoopLayout.of(state, self._loop_constants())
+        layout = _LoopLayout.of(state, self._loop_constants())
 
         def cond(carry):
-            state = scalars.unpack(carry[1], carry[2])
+            state = layout.unpack(carry[1], carry[2])
             done, _ = self._ended(state)
             return ~done & (state.iterations < limit)
 
         def body(carry):
             y, state, aux = self._update(fn, carry[0], args, options,
-                                         scalars.unpack(carry[1], carry[2]))
-            return (y, *scalars.pack(state), aux)
+                                         layout.unpack(carry[1], carry[2]))
+            return (y, *layout.pack(state), aux)
 
-        y, rest, packed, aux = jax.lax.while_loop(cond, body, (y, *scalars.pack(state), aux))
-        return y, scalars.unpack(rest, packed), aux
+        y, rest, packed, aux = jax.lax.while_loop(cond, body, (y, *layout.pack(state), aux))
+        return y, layout.unpack(rest, packed), aux
 
     def _restarted(self, fn, start, args, options, carry):
         """`carry = (y, state, aux)` moved to the point `start`, with fresh bookkeeping."""
