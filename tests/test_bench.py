@@ -501,6 +501,31 @@ def test_speed_script_measures_the_ensemble_floor():
     assert 10 <= iterations <= 10 * 100  # 10 steps, each 1 to root_find_max_steps
 
 
+def test_speed_script_times_the_floor_in_the_rounds_of_each_ensemble(monkeypatch):
+    """benchmarks.speed's fraction of the floor: each round times the floor after the
+    ensemble, and a row reports the median over rounds of floor x members / ensemble time
+    (a trivial member stands in for the solve, a constant for the floor's timing)."""
+    module = benchmark_script("speed")
+
+    def member(y0):
+        return (2 * y0[0], y0[1]), jnp.array(True)
+
+    monkeypatch.setattr(module, "solve_member", member)
+    calls = []
+
+    def floor():
+        calls.append(1)
+        return 1e-6
+
+    _, rows = module.ensemble_figures(4, 2, 1, 3, floor=floor)
+    assert len(calls) == 3 * len(rows) == 9  # once per round of each ensemble
+    for row in rows:
+        # the median of c·n/t over 3 rounds is c·n over the median time
+        assert row["floor_fraction"] == pytest.approx(1e-6 * row["members"] / row["ens_s"])
+    _, rows = module.ensemble_figures(4, 4, 1, 1)
+    assert all(row["floor_fraction"] is None for row in rows)
+
+
 @pytest.mark.parametrize(
     "only, expected", [(None, ["fixtures", "ensembles"]), ("fixtures", ["fixtures"]),
                        ("ensembles", ["ensembles"])],
