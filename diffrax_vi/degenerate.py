@@ -37,7 +37,8 @@ CONSTRAINT_GROWTH = 100.0
 
 
 def _momentum_map(ctx: StepContext, q1: Array):
-    """`ϑ(t_{n+1}, ·, v)` and its Jacobians in `q` and `v` at `(q1, v = 0)`."""
+    """`ϑ(t_{n+1}, ·, v = 0)`, its Jacobian in `q` at `q1`, and whether its Jacobian in `v`
+    vanishes there: both Jacobians from one `jax.jacfwd`."""
     t = ctx.t + ctx.h
     v = jnp.zeros_like(q1)
 
@@ -46,6 +47,22 @@ def _momentum_map(ctx: StepContext, q1: Array):
 
     jq, jv = jax.lax.stop_gradient(jax.jacfwd(theta, argnums=(0, 1))(q1, v))
     return lambda q: theta(q, v), jq, jnp.all(jv == 0)
+
+
+def _gauss_newton_onto(theta, jq: Array, q1: Array, p1: Array) -> Array:
+    """`(∂ϑ/∂q)^+ (p1 − ϑ(q1))`, the pseudo-inverse by SVD (`jnp.linalg.pinv` would put a
+    float64 constant into float32 steps)."""
+    work = lapack_dtype(q1.dtype)
+    u, sv, vt = jnp.linalg.svd(jq.astype(work))
+    kept = sv > 10 * max(jq.shape) * jnp.finfo(work).eps * sv[0]
+    inv = jnp.where(kept, 1 / jnp.where(kept, sv, 1), 0)
+    misfit = (p1 - theta(q1)).astype(work)
+    return (vt.T @ (inv * (u.T @ misfit))).astype(q1.dtype)
+
+
+def _gap(theta, q1: Array, p1: Array) -> Array:
+    """`max|p1 − ϑ(q1)|`, not differentiated."""
+    return jax.lax.stop_gradient(jnp.max(jnp.abs(p1 - theta(q1))))
 
 
 def first_order_end_correction(ctx: StepContext, q1: Array, p1: Array) -> Array:
@@ -60,13 +77,7 @@ def first_order_end_correction(ctx: StepContext, q1: Array, p1: Array) -> Array:
     point the change is zero.
     """
     theta, jq, first_order = _momentum_map(ctx, q1)
-    work = lapack_dtype(q1.dtype)
-    # (∂ϑ/∂q)^+ by SVD (`jnp.linalg.pinv` would put a float64 constant into float32 steps)
-    u, sv, vt = jnp.linalg.svd(jq.astype(work))
-    kept = sv > 10 * max(jq.shape) * jnp.finfo(work).eps * sv[0]
-    inv = jnp.where(kept, 1 / jnp.where(kept, sv, 1), 0)
-    misfit = (p1 - theta(q1)).astype(work)
-    step = (vt.T @ (inv * (u.T @ misfit))).astype(q1.dtype)
+    step = _gauss_newton_onto(theta, jq, q1, p1)
     return jnp.where(first_order, step, jnp.zeros_like(step))
 
 
@@ -74,32 +85,29 @@ def primary_constraint_violation(ctx: StepContext, q1: Array, p1: Array) -> Arra
     """`max|p_{n+1} − ϑ(t_{n+1}, q_{n+1})|` where `ϑ` does not depend on `v` at the end point
     (a first-order Lagrangian), else 0; not differentiated."""
     theta, _, first_order = _momentum_map(ctx, q1)
-    gap = jnp.max(jnp.abs(p1 - theta(q1)))
-    return jax.lax.stop_gradient(jnp.where(first_order, gap, jnp.zeros_like(gap)))
+    gap = _gap(theta, q1, p1)
+    return jnp.where(first_order, gap, jnp.zeros_like(gap))
 
 
 def end_on_constraint(ctx: StepContext, q1: Array, p1: Array, correct: bool = True
                       ) -> tuple[Array, Array]:
     """`(q_{n+1}, violation)`: the end position moved onto the primary constraint
-    (`first_order_end_correction`, with `correct`; else `q1` as it is) and
-    `primary_constraint_violation` there.
+    (`first_order_end_correction`, with `correct`; else `q1` as it is) and its distance
+    from the constraint there (`primary_constraint_violation`).
 
-    The same values as calling the two, but where `ϑ` reads `v` at the end point (any regular
-    Lagrangian) neither is computed: one `lax.cond` on that test returns `q1` and a zero
-    violation, which is what they give there. Only a first-order end state pays for the
-    Jacobians and the SVD of the correction."""
-    t = ctx.t + ctx.h
+    The momentum map's Jacobians are formed once, at `q1` (where `ϑ` does not read `v`
+    there, it does not read it at the moved point either: the correction is a rounding-size
+    move). Where `ϑ` reads `v` at the end point (any regular Lagrangian) one `lax.cond`
+    returns `q1` and a zero violation, which is what the two functions give there; only a
+    first-order end state pays for the SVD of the correction. The compiled step holds one
+    derivative of the momentum map, not three."""
+    theta, jq, first_order = _momentum_map(ctx, q1)
 
-    def theta_v(v):
-        return ctx.term.momentum(t, q1, v, ctx.args)
-
-    jv = jax.lax.stop_gradient(jax.jacfwd(theta_v)(jnp.zeros_like(q1)))
-
-    def first_order(q1, p1):
-        moved = q1 + first_order_end_correction(ctx, q1, p1) if correct else q1
-        return moved, primary_constraint_violation(ctx, moved, p1)
+    def on_constraint(q1, p1):
+        moved = q1 + _gauss_newton_onto(theta, jq, q1, p1) if correct else q1
+        return moved, _gap(theta, moved, p1).astype(jnp.result_type(q1, p1))
 
     def regular(q1, p1):
         return q1, jnp.zeros((), jnp.result_type(q1, p1))
 
-    return jax.lax.cond(jnp.all(jv == 0), first_order, regular, q1, p1)
+    return jax.lax.cond(first_order, on_constraint, regular, q1, p1)

@@ -211,13 +211,12 @@ class FixedPointIteration(RoundoffNewton):
         gives one (an explicit inverse computed its own, cheaper way), with the pivoted
         factorisation where that gave non-finite entries; else `_factor`."""
         given = hints_of(options).inverse
+        jac = self._jacobian(fn, y, args, options)
         if given is None or not self.inverse:
-            return _factor(self._jacobian(fn, y, args, options), dtype, self.inverse)
-        inverse = given(y, args).astype(lapack_dtype(dtype))
+            return _factor(jac, dtype, self.inverse)
+        inverse = given(jac, y, args).astype(lapack_dtype(dtype))
         return unless_all_skip(
-            ~jnp.all(jnp.isfinite(inverse)),
-            lambda: _factor(self._jacobian(fn, y, args, options), dtype, True),
-            (inverse,),
+            ~jnp.all(jnp.isfinite(inverse)), lambda: _factor(jac, dtype, True), (inverse,)
         )
 
     def _update(self, fn, y, args, options, state):

@@ -319,16 +319,15 @@ class VariableProjection(FreeEndpoints):
         as `UniformLayer`'s), it is computed once, when the step is traced, and enters the
         compiled step as a constant: no factorisation per step."""
         with jax.ensure_compile_time_eval():
-            return self._span(theta, ctx)
+            return self._span(theta, ctx.basis, ctx.nodes, ctx.weights, ctx.q0.shape[0],
+                              ctx.q0.dtype)
 
-    def _span(self, theta: Array, ctx: StepContext) -> ProjectedSpan:
-        basis = ctx.basis
-        dtype = ctx.q0.dtype
-        nodes = ctx.nodes.astype(dtype)
+    def _span(self, theta: Array, basis: AbstractBasis, nodes: Array, weights: Array,
+              dim: int, dtype) -> ProjectedSpan:
+        nodes = nodes.astype(dtype)
         n = nodes.shape[0]
         k = self.span_rank(basis, n)
         taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], dtype)])
-        dim = ctx.q0.shape[0]
         if isinstance(basis, ShallowNetBasis):
             _, w, beta = basis.split(theta)
             hidden = (w, beta)
@@ -346,7 +345,7 @@ class VariableProjection(FreeEndpoints):
             value = jnp.repeat(value[:, :, None], dim, axis=2)  # (K, P, D)
             slope = jnp.repeat(slope[:, :, None], dim, axis=2)
         rtol = self.rtol if self.rtol is not None else float(jnp.finfo(dtype).eps) ** 0.625
-        span = feature_span(value, slope, ctx.weights, k, rtol, hidden)
+        span = feature_span(value, slope, weights, k, rtol, hidden)
         return jax.lax.stop_gradient(span)
 
     def reduce(self, curve: Callable[[Array], Array], span: ProjectedSpan, ctx: StepContext
@@ -488,12 +487,18 @@ class VariableProjection(FreeEndpoints):
         free particle), which takes the place of the continuity row (its entry in the `Δp`
         column is 1). The rest of the diagonal is the kinetic block, of order `M/h`. Non-finite
         where a pivot vanished; the caller falls back to a pivoted factorisation."""
-        dc = z[0]
-        k, dim = dc.shape
+        return self.invert_reduced_jacobian(self.reduced_jacobian(z, args), z)
+
+    @staticmethod
+    def invert_reduced_jacobian(jacobian: Array, z) -> Array:
+        """`reduced_inverse` of a Jacobian already formed at `z` (the root finder's hint
+        `inverse`: the step's program then holds one Jacobian, which the pivoted fallback
+        reuses)."""
+        k, dim = z[0].shape
         n = k * dim
         order = np.arange(n + dim)
         order[:dim], order[n:] = np.arange(n, n + dim), np.arange(dim)
-        return unpivoted_inverse(self.reduced_jacobian(z, args), order)
+        return unpivoted_inverse(jacobian, order)
 
     @staticmethod
     def _assemble(coupling: Array, span: ProjectedSpan, dtype) -> Array:
@@ -932,14 +937,15 @@ class RoundoffNewton(AbstractStepRootFinder):
         one (the formulation's own inverse, cheaper than LAPACK at the sizes of a step; by
         LU where it is not finite), else by LU of the Jacobian."""
         dtype = f.dtype
+        jac = self._jacobian(fn, y, args, options)
 
         def by_lu():
-            return solve(self._jacobian(fn, y, args, options).astype(dtype), -f)
+            return solve(jac.astype(dtype), -f)
 
         given = hints_of(options).inverse
         if given is None:
             return by_lu()
-        inverse = given(y, args)
+        inverse = given(jac, y, args)
         d = -(inverse @ f.astype(inverse.dtype)).astype(dtype)
         # a non-finite inverse makes the update non-finite: testing the update is cheaper
         return unless_all_skip(~jnp.all(jnp.isfinite(d)), by_lu, d)

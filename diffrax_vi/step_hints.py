@@ -36,8 +36,11 @@ class StepHints(eqx.Module):
     - `outputs`: `y ↦` the step's results (`(q_{n+1}, p_{n+1})`): a solve may end where the
       residual stopped falling but these no longer change.
     - `jacobian`: `(y, args) ↦` the dense Jacobian of `F`, assembled by the formulation.
-    - `inverse`: `(y, args) ↦` the inverse of that Jacobian, computed the formulation's own
-      cheaper way (possibly non-finite where that way fails: check).
+    - `inverse`: `(jacobian, y, args) ↦` the inverse of the Jacobian formed at `y`,
+      computed the formulation's own cheaper way (possibly non-finite where that way fails:
+      check). It takes the Jacobian the root finder formed (by the hint `jacobian` or
+      `jax.jacfwd`), so that a fallback factorisation of the same matrix does not form it
+      again.
     - `kinetic`: `(y, args) ↦` the inverse of the kinetic part of the Jacobian (the projected
       step), for a fixed-point iteration.
     - `max_iterations`: the solver's iteration cap. A root finder that reads it may run the

@@ -123,7 +123,7 @@ def projected_root_find(vi: Any, ctx: StepContext, span, z0, max_steps: int, res
     hints = StepHints(
         scale=_residual_scale(ctx),
         jacobian=reading(form.reduced_jacobian),
-        inverse=reading(form.reduced_inverse),
+        inverse=lambda jacobian, z, args: form.invert_reduced_jacobian(jacobian, z),
         kinetic=reading(
             functools.partial(form.kinetic_inverse, uniform=form.uniform_span(span))
         ),

@@ -577,3 +577,35 @@ def test_a_span_known_when_traced_reaches_the_root_finder_as_a_constant():
     traced = []
     jax.jit(lambda s: traced.append(with_known_span(s)((ctx, s, None))[1] is s) or 0.0)(span)
     assert traced == [True]
+
+
+@pytest.mark.parametrize("correct", [True, False])
+def test_end_on_constraint_is_the_correction_and_the_violation_there(correct):
+    """`end_on_constraint` forms the momentum map's Jacobians once and gives what the two
+    public functions give: for a first-order Lagrangian the end position moved onto
+    `p = ϑ(q)` (with `correct`) and the distance left there; for a regular one the end state
+    as it is and no violation."""
+    from diffrax_vi.degenerate import (
+        end_on_constraint,
+        first_order_end_correction,
+        primary_constraint_violation,
+    )
+
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))
+    first_order = dvi.LagrangianTerm(lambda t, q, v, args: q[0] * v[1] - 0.5 * q @ q)
+    q1, p1 = jnp.array([0.3, 0.1]), jnp.array([0.02, 0.51])
+    for term, regular in ((first_order, False), (problems.double_pendulum().term, True)):
+        y0 = (jnp.array([0.5, 0.2]), jnp.array([0.0, 0.5]))
+        ctx = solver.step_context(term, 0.0, 0.1, y0, None)
+        moved, violation = jax.jit(lambda q, p: end_on_constraint(ctx, q, p, correct))(q1, p1)
+        if regular:
+            np.testing.assert_array_equal(np.asarray(moved), np.asarray(q1))
+            assert float(violation) == 0.0
+            continue
+        expected = q1 + first_order_end_correction(ctx, q1, p1) if correct else q1
+        np.testing.assert_allclose(np.asarray(moved), np.asarray(expected), rtol=0, atol=1e-16)
+        # ϑ(q) = (0, q0): the correction takes q0 from p1[1] and leaves q1[1] alone
+        np.testing.assert_allclose(np.asarray(moved), [0.51, 0.1] if correct else q1, rtol=0,
+                                   atol=1e-16)
+        assert float(violation) == float(primary_constraint_violation(ctx, moved, p1))
+        assert float(violation) == pytest.approx(0.02 if correct else 0.21, abs=1e-15)

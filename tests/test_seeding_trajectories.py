@@ -2,11 +2,14 @@
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from diffrax_vi import problems
-from diffrax_vi.seeding.trajectories import implicit_midpoint
+from diffrax_vi.quadrature import GaussLegendre
+from diffrax_vi.seeding.trajectories import implicit_midpoint, labels_curve
 from diffrax_vi.terms import IODETerm, LagrangianTerm
 
 F64 = jnp.float64
@@ -123,3 +126,35 @@ def test_with_substeps_keeps_every_other_option():
     method = dvi.ShallowNet(dvi.ShallowNetBasis(dvi.tanh, 4), dvi.GaussLegendre(4),
                             initial_trajectory_method=warm, extrapolation_substep=12)
     assert method.seed.initial_trajectory == changed
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
+@pytest.mark.parametrize("count", [2, 3, 17, 33])
+def test_labels_curve_is_jnp_interp_on_the_uniform_grid(dtype, count):
+    """The trajectory seed's curve (the projected step's restart) takes its interval from
+    the grid's arithmetic instead of a search: compiled, its values and τ-slopes are those
+    of `jnp.interp` bit for bit, at the grid's own points, the ends, Gauss–Legendre nodes
+    (0.5 among them), between, and outside [0, 1]."""
+    labels = jnp.asarray(np.random.default_rng(count).normal(size=(count, 3)), dtype)
+    grid = jnp.arange(count, dtype=dtype) / (count - 1)
+    taus = np.concatenate([
+        np.asarray(grid, np.float64), [0.0, 1.0, 0.5, -0.1, 1.1], np.linspace(0, 1, 41),
+        *(np.asarray(GaussLegendre(r).nodes_weights(jnp.float64)[0]) for r in (3, 8, 16)),
+    ])
+    taus = jnp.asarray(taus, dtype)
+
+    def with_slope(curve):
+        return jax.jit(jax.vmap(lambda t: jax.jvp(curve, (t,), (jnp.ones_like(t),))))(taus)
+
+    ours = with_slope(labels_curve(labels))
+    reference = with_slope(
+        lambda t: jax.vmap(lambda y: jnp.interp(t, grid, y), in_axes=1)(labels)
+    )
+    for a, b in zip(ours, reference, strict=True):
+        assert a.dtype == dtype
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_labels_curve_refuses_a_single_label():
+    with pytest.raises(ValueError, match="at least two labels"):
+        labels_curve(jnp.zeros((1, 2)))

@@ -33,6 +33,7 @@ from .trajectories import (
     IntegratorExtrapolation,
     PreviousStep,
     StepHistory,
+    labels_curve,
 )
 
 __all__ = ["Seed", "SeedPolicy", "SeedRecord", "Seeder", "residual_scale"]
@@ -393,11 +394,7 @@ class Seeder(eqx.Module):
         labels, p_end = self.initial_trajectory.labels(
             ctx.term, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args, history
         )
-        grid = jnp.arange(labels.shape[0], dtype=ctx.q0.dtype) / (labels.shape[0] - 1)
-
-        def seed_curve(tau):
-            return jax.vmap(lambda y: jnp.interp(tau, grid, y), in_axes=1)(labels)
-
+        seed_curve = labels_curve(labels.astype(ctx.q0.dtype))
         z = self.formulation.start(seed_curve, p_end.astype(ctx.p0.dtype), span, ctx)
         return jax.lax.stop_gradient(z)
 

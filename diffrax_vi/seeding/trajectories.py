@@ -26,6 +26,7 @@ __all__ = [
     "NoExtrapolation",
     "PreviousStep",
     "implicit_midpoint",
+    "labels_curve",
 ]
 
 
@@ -121,6 +122,33 @@ def implicit_midpoint(
     steps = jnp.arange(substeps, dtype=dtype)
     (_, p_end, _), qs = jax.lax.scan(substep, (q0, p0, jnp.zeros_like(q0)), steps)
     return jnp.concatenate([q0[None], qs], axis=0), p_end
+
+
+def labels_curve(labels: Array):
+    """`τ ↦` the labels' piecewise-linear curve (`labels`: `(N + 1, D)` on the uniform grid
+    `τ_i = i/N`), with the values and slopes of `jnp.interp` on that grid, bit for bit.
+
+    The interval comes from the grid's own arithmetic (`⌊τN⌋`, moved by one where rounding
+    put it off), not from a binary search: a step's compiled program then holds a few
+    gathers where `jnp.interp` compiles a search loop per coordinate and per use."""
+    m = labels.shape[0]
+    if m < 2:
+        raise ValueError(f"labels_curve needs at least two labels, got {m}")
+    grid = jnp.arange(m, dtype=labels.dtype) / (m - 1)
+
+    def curve(tau: Array) -> Array:
+        tau = jnp.asarray(tau, labels.dtype)
+        guess = jnp.clip(jnp.floor(tau * (m - 1)).astype(jnp.int32), 0, m - 1)
+        above = jnp.minimum(guess + 1, m - 1)
+        # the number of grid points at or before τ (`searchsorted(grid, τ, side="right")`)
+        count = guess + (grid[guess] <= tau) + ((guess + 1 < m) & (grid[above] <= tau))
+        i = jnp.clip(count, 1, m - 1)
+        start, end = labels[i - 1], labels[i]
+        value = start + ((tau - grid[i - 1]) / (grid[i] - grid[i - 1])) * (end - start)
+        value = jnp.where(tau < grid[0], labels[0], value)
+        return jnp.where(tau > grid[-1], labels[-1], value)
+
+    return curve
 
 
 class IntegratorExtrapolation(AbstractInitialTrajectory):
