@@ -122,55 +122,91 @@ def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: fl
     away, and the step is the Galerkin step of a space with the constants (the variation
     that moves `q_n` is in it, so the map stays symplectic in floating point). Its output
     weights are the features' least-squares fit of the constant."""
+    known = not _traced(value, slope, weights, hidden)
+    xp = np if known else jnp
+    reduce = _eager_reduction if known else _call
     n = value.shape[0] - 2
     dtype = value.dtype
     work = lapack_dtype(dtype)
-    root_b = jnp.sqrt(weights.astype(work))
+    root_b = xp.sqrt(xp.asarray(weights).astype(work))
     rb = root_b[:, None, None]
-    data = jnp.concatenate([rb * value[:n].astype(work), rb * slope[:n].astype(work),
-                            value[n:].astype(work)])
-    data = jnp.moveaxis(data, 2, 0)  # (D, 2R + 2, S)
+    data = xp.concatenate([rb * value[:n].astype(work), rb * slope[:n].astype(work),
+                           value[n:].astype(work)])
+    data = xp.moveaxis(data, 2, 0)  # (D, 2R + 2, S)
     dim = data.shape[0]
-    one = jnp.concatenate([root_b, jnp.zeros(n, work), jnp.ones(2, work)])  # the constant
+    one = xp.concatenate([root_b, xp.zeros(n, work), xp.ones(2, work)])  # the constant
+    svd = functools.partial(jnp.linalg.svd, full_matrices=False)
     # The constant's output weights: least squares on the features.
-    u_a, s_a, vt_a = jnp.linalg.svd(data, full_matrices=False)
+    u_a, s_a, vt_a = reduce(svd, data)
     top = s_a[..., :1]
     keep = s_a > rtol * top
-    inv_a = jnp.where(keep, 1 / jnp.where(keep, s_a, 1), 0)
-    alpha_one = jnp.einsum("dks,dk->ds", vt_a, inv_a * jnp.einsum("dik,i->dk", u_a, one))
+    inv_a = xp.where(keep, 1 / xp.where(keep, s_a, 1), 0)
+    alpha_one = reduce(functools.partial(jnp.einsum, "dks,dk->ds"), vt_a,
+                       inv_a * reduce(functools.partial(jnp.einsum, "dik,i->dk"), u_a, one))
     # The features with the constant projected out, orthonormalised.
-    along = jnp.einsum("i,dis->ds", one, data) / jnp.dot(one, one)  # (D, S)
+    # Divisions by a broadcast value are written as XLA computes them (times the
+    # reciprocal), so that the NumPy path rounds alike.
+    per_norm2 = 1 / reduce(jnp.dot, one, one)
+    along = reduce(functools.partial(jnp.einsum, "i,dis->ds"), one, data) * per_norm2  # (D, S)
     rest = data - one[None, :, None] * along[:, None, :]
-    u, s, vt = jnp.linalg.svd(rest, full_matrices=False)
+    u, s, vt = reduce(svd, rest)
     m = rank - 1
-    u, s, v = u[..., :m], s[..., :m], jnp.swapaxes(vt, 1, 2)[..., :m]
+    u, s, v = u[..., :m], s[..., :m], xp.swapaxes(vt, 1, 2)[..., :m]
     live = s > rtol * top
-    inv = jnp.where(live, 1 / jnp.where(live, s, 1), 0)
+    inv = xp.where(live, 1 / xp.where(live, s, 1), 0)
     # Direction k is `features·w_k − (along·w_k)·1`; the weak ones are orthogonal to the
     # constant only to eps/s_k, so it is projected out once more (`γ_k` of the constant).
-    gamma = jnp.einsum("i,dik->dk", one, u) / jnp.dot(one, one)
+    gamma = reduce(functools.partial(jnp.einsum, "i,dik->dk"), one, u) * per_norm2
     u = u - one[None, :, None] * gamma[:, None, :]
     weights_rest = v * inv[:, None, :]  # (D, S, m)
-    shift = jnp.einsum("ds,dsk->dk", along, weights_rest) + gamma
-    to_alpha = jnp.concatenate(
+    shift = reduce(functools.partial(jnp.einsum, "ds,dsk->dk"), along, weights_rest) + gamma
+    to_alpha = xp.concatenate(
         [alpha_one[:, :, None], weights_rest - alpha_one[:, :, None] * shift[:, None, :]],
         axis=2,
     )
-    ones = jnp.ones((dim, n, 1), work)
+    ones = xp.ones((dim, n, 1), work)
+    per_root_b = (1 / root_b)[None, :, None]
     span = ProjectedSpan(
-        gq=jnp.concatenate([ones, u[:, :n] / root_b[None, :, None]], axis=2),
-        gv=jnp.concatenate([0 * ones, u[:, n : 2 * n] / root_b[None, :, None]], axis=2),
-        g0=jnp.concatenate([ones[:, 0], u[:, 2 * n]], axis=1),
-        gd=jnp.concatenate([0 * ones[:, 0], u[:, 2 * n + 1] - u[:, 2 * n]], axis=1),
+        gq=xp.concatenate([ones, u[:, :n] * per_root_b], axis=2),
+        gv=xp.concatenate([0 * ones, u[:, n : 2 * n] * per_root_b], axis=2),
+        g0=xp.concatenate([ones[:, 0], u[:, 2 * n]], axis=1),
+        gd=xp.concatenate([0 * ones[:, 0], u[:, 2 * n + 1] - u[:, 2 * n]], axis=1),
         to_alpha=to_alpha,
-        live=jnp.concatenate([jnp.ones((dim, 1), bool), live], axis=1).T,
+        live=xp.concatenate([xp.ones((dim, 1), bool), live], axis=1).T,
         hidden=hidden,
     )
 
     def cast(a):
-        return a if a.dtype == jnp.bool_ else a.astype(dtype)
+        a = np.asarray(a) if known else a
+        a = a if a.dtype == jnp.bool_ else a.astype(dtype)
+        return jax.device_put(a) if known else a  # (a transfer; `jnp.asarray` compiles)
 
     return jax.tree_util.tree_map(cast, span)
+
+
+def _traced(*trees) -> bool:
+    """Whether any leaf of `trees` is traced (else all are known when the step is traced)."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
+
+
+def _call(fn, *args):
+    return fn(*args)
+
+
+def _as_is(a):
+    return a
+
+
+def _eager_reduction(fn, *args):
+    """`fn(*args)` (an SVD or a contraction) run now by JAX, as NumPy arrays.
+
+    A span known when the step is traced is computed then, once. Evaluated by JAX operation
+    by operation, each operation is compiled on its own (some 80 of them, seconds of a
+    first call). Only its reductions need JAX for that: its other operations (elementwise
+    IEEE arithmetic, data movement) round alike in NumPy, which compiles nothing, so the
+    span is the same to the bit."""
+    with jax.ensure_compile_time_eval():
+        return jax.tree_util.tree_map(np.asarray, fn(*args))
 
 
 class AbstractHiddenLayer(eqx.Module):
@@ -239,8 +275,9 @@ class UniformLayer(AbstractHiddenLayer):
             signs = np.where(centres <= 0, 1.0, np.where(centres >= 1, -1.0, signs))
         w = self.scale * signs
         columns = np.stack([w, -w * centres])  # (2, S)
-        w_beta = jnp.asarray(np.repeat(columns[:, :, None], dim, axis=2), dtype)
-        return ShallowNetBasis.join(jnp.zeros((width, dim), dtype), w_beta[0], w_beta[1])
+        w_beta = np.repeat(columns[:, :, None], dim, axis=2)
+        # assembled in NumPy: known when the step is traced, it compiles nothing
+        return jnp.asarray(np.concatenate([np.zeros((width, dim)), w_beta[0], w_beta[1]]), dtype)
 
 
 class VariableProjection(FreeEndpoints):
@@ -324,29 +361,33 @@ class VariableProjection(FreeEndpoints):
 
     def _span(self, theta: Array, basis: AbstractBasis, nodes: Array, weights: Array,
               dim: int, dtype) -> ProjectedSpan:
-        nodes = nodes.astype(dtype)
+        # Known when the step is traced (see `feature_span`): NumPy where it rounds as JAX.
+        known = not _traced(theta, basis, nodes, weights)
+        xp = np if known else jnp
+        host = np.asarray if known else _as_is
+        nodes = xp.asarray(nodes).astype(dtype)
         n = nodes.shape[0]
         k = self.span_rank(basis, n)
-        taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], dtype)])
+        taus = xp.concatenate([nodes, xp.array([0.0, 1.0], dtype)])
         if isinstance(basis, ShallowNetBasis):
-            _, w, beta = basis.split(theta)
+            _, w, beta = (host(a) for a in basis.split(host(theta)))
             hidden = (w, beta)
             z = w * taus[:, None, None] + beta  # (K, S, D)
-            value, slope = jax.jvp(basis.activation, (z,), (jnp.ones_like(z),))
+            value, slope = (host(a) for a in jax.jvp(basis.activation, (z,), (xp.ones_like(z),)))
             slope = w * slope
         else:
             # A linear ansatz: its basis functions are the features, the same in every
             # coordinate (column j of the identity as parameters gives function j).
             hidden = ()
             eye = jnp.eye(basis.num_params(), dtype=dtype)
-            value, slope = jax.vmap(
+            value, slope = (host(a) for a in jax.vmap(
                 lambda tau: jax.jvp(lambda t: basis.evaluate(eye, t), (tau,), (jnp.ones_like(tau),))
-            )(taus)
-            value = jnp.repeat(value[:, :, None], dim, axis=2)  # (K, P, D)
-            slope = jnp.repeat(slope[:, :, None], dim, axis=2)
+            )(taus))
+            value = xp.repeat(value[:, :, None], dim, axis=2)  # (K, P, D)
+            slope = xp.repeat(slope[:, :, None], dim, axis=2)
         rtol = self.rtol if self.rtol is not None else float(jnp.finfo(dtype).eps) ** 0.625
         span = feature_span(value, slope, weights, k, rtol, hidden)
-        return jax.lax.stop_gradient(span)
+        return span if known else jax.lax.stop_gradient(span)
 
     def reduce(self, curve: Callable[[Array], Array], span: ProjectedSpan, ctx: StepContext
                ) -> Array:

@@ -609,3 +609,73 @@ def test_end_on_constraint_is_the_correction_and_the_violation_there(correct):
                                    atol=1e-16)
         assert float(violation) == float(primary_constraint_violation(ctx, moved, p1))
         assert float(violation) == pytest.approx(0.02 if correct else 0.21, abs=1e-15)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
+@pytest.mark.parametrize("shape", [(10, 8, 1), (18, 10, 2), (6, 12, 3)])
+def test_a_known_span_is_the_span_of_jax_operation_by_operation(dtype, shape):
+    """A span known when the step is traced is computed then, in NumPy but for its
+    reductions: bit for bit the span that JAX's operations give one by one (as they did
+    before, each compiled on its own), in every precision. The reference is the same
+    function on a traced hidden layer, whose other inputs are known and so evaluated
+    eagerly operation by operation under `ensure_compile_time_eval`."""
+    from diffrax_vi.projection import feature_span
+
+    k, s, d = shape  # R + 2 points, features, coordinates
+    rng = np.random.default_rng(k + s + d)
+    value = rng.normal(size=shape).astype(dtype)
+    slope = (3 * rng.normal(size=shape)).astype(dtype)
+    weights = np.asarray(dvi.GaussLegendre(k - 2).nodes_weights(dtype)[1])
+    hidden = (np.ones((s, d), dtype), np.zeros((s, d), dtype))
+    rtol = float(jnp.finfo(dtype).eps) ** 0.625
+    known = feature_span(value, slope, weights, min(s, k - 1), rtol, hidden)
+    assert all(isinstance(leaf, jax.Array) for leaf in jax.tree_util.tree_leaves(known))
+
+    out = {}
+
+    def reference(w, beta):
+        with jax.ensure_compile_time_eval():
+            out["span"] = feature_span(jnp.asarray(value), jnp.asarray(slope),
+                                       jnp.asarray(weights), min(s, k - 1), rtol, (w, beta))
+        return w
+
+    jax.jit(reference)(*hidden)
+    span = out["span"]
+    for name in ("gq", "gv", "g0", "gd", "to_alpha", "live"):
+        a, b = getattr(known, name), getattr(span, name)
+        assert not isinstance(b, jax.core.Tracer)
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=name)
+
+
+def test_a_known_span_compiles_its_reductions_only():
+    """Computed when the step is traced, the span of a fixed hidden layer compiles its
+    SVDs, contractions and the activation's derivative, and nothing else: evaluated by JAX
+    operation by operation it compiled some 80 programs (2.8 s of a double-pendulum step's
+    first trace on this project's 2-core machine)."""
+    from jax.monitoring import (
+        register_event_duration_secs_listener,
+        unregister_event_duration_listener,
+    )
+
+    problem = problems.double_pendulum()
+    solver = projected(dvi.tanh, 7, 11)  # sizes that no other test compiles
+    form = solver.formulation
+    ctx = solver.step_context(problem.term, 0.0, 0.1, problem.y0, problem.args)
+    hidden = form.hidden.parameters(solver.basis, 2, ctx.q0.dtype)
+    compiles = []
+
+    def count(event, seconds, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(seconds)
+
+    jax.clear_caches()
+    register_event_duration_secs_listener(count)
+    try:
+        span = form.span(hidden, ctx)
+    finally:
+        unregister_event_duration_listener(count)
+    assert all(isinstance(leaf, jax.Array) for leaf in jax.tree_util.tree_leaves(span))
+    # two SVDs, five contractions (up to three programs each) and a dot, the activation
+    # and its derivative
+    assert len(compiles) <= 20, len(compiles)
