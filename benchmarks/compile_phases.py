@@ -6,6 +6,11 @@ Configurations as in `benchmarks/speed.py` (`default`, `jacrev`, `auto`, `fast`)
 `--no-restart` sets `restart_failed=False` (the program should not change: the fresh seed fit
 is the root finder's fallback either way).
 
+`--fresh` measures what a user's first call costs: the first call (tracing, compiling and
+one run of the solve) in `--repeats` fresh Python processes, without a cache. The medians of
+the default mode come from later traces in one process, after `jax.clear_caches()`, which
+cost less: JAX's and XLA's first compilation in a process also pays for their own start.
+
 `--cache` measures JAX's persistent compilation cache instead: the same first call (tracing,
 compiling and one run of the solve) in `--repeats` fresh Python processes sharing one new
 cache directory, so the first compiles and writes the cache and the others read it.
@@ -80,14 +85,17 @@ def first_call(problem_name: str, config: str, steps: int = 20, h=0.1) -> float:
     return time.perf_counter() - start
 
 
-def cached_first_calls(problem_name: str, config: str, processes: int = 3, steps: int = 20):
-    """First-call seconds in `processes` fresh processes sharing a new persistent cache."""
+def cached_first_calls(problem_name: str, config: str, processes: int = 3, steps: int = 20,
+                       cache: bool = True):
+    """First-call seconds in `processes` fresh processes sharing a new persistent cache (or,
+    without `cache`, each without one)."""
     out = []
-    with tempfile.TemporaryDirectory() as cache:
+    with tempfile.TemporaryDirectory() as directory:
         for _ in range(processes):
+            child = ("--child-cache", directory) if cache else ("--child-fresh",)
             line = subprocess.run(
-                module_command("benchmarks.compile_phases", problem_name, config,
-                               "--child-cache", cache, "--steps", str(steps)),
+                module_command("benchmarks.compile_phases", problem_name, config, *child,
+                               "--steps", str(steps)),
                 check=True, capture_output=True, text=True, cwd=ROOT,
                 env=dict(os.environ, EQX_ON_ERROR="nan"),  # no host callback in the program
             ).stdout.strip().splitlines()[-1]
@@ -105,13 +113,23 @@ def main(argv=None):
     parser.add_argument("--no-restart", action="store_true")
     parser.add_argument("--cache", action="store_true",
                         help="first calls in fresh processes sharing a persistent cache")
+    parser.add_argument("--fresh", action="store_true",
+                        help="first calls in fresh processes, without a cache")
     parser.add_argument("--steps", type=int, default=20, help=argparse.SUPPRESS)
     parser.add_argument("--child-cache", help=argparse.SUPPRESS)
+    parser.add_argument("--child-fresh", action="store_true", help=argparse.SUPPRESS)
     ns = parser.parse_args(argv)
     if ns.child_cache:
         jax.config.update("jax_compilation_cache_dir", ns.child_cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    if ns.child_cache or ns.child_fresh:
         print(first_call(ns.problem, ns.config, ns.steps))
+        return
+    if ns.fresh:
+        seconds = cached_first_calls(ns.problem, ns.config, ns.repeats, ns.steps, cache=False)
+        print(f"{ns.problem} {ns.config}: first call in fresh processes without a cache: "
+              + ", ".join(f"{s:.2f} s" for s in seconds)
+              + f" (median {statistics.median(seconds):.2f} s)")
         return
     if ns.cache:
         seconds = cached_first_calls(ns.problem, ns.config, max(ns.repeats, 2), ns.steps)

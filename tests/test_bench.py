@@ -692,6 +692,9 @@ def test_compile_phases_script_splits_the_first_call():
     # --cache: a second process reads the program from the persistent cache the first wrote
     first, second = module.cached_first_calls("harmonic_oscillator", "fast", 2, steps=2)
     assert 0 < second < first
+    # --fresh: each process compiles the program itself (no cache between them)
+    fresh = module.cached_first_calls("harmonic_oscillator", "fast", 2, steps=2, cache=False)
+    assert min(fresh) > second
 
 
 def test_program_parts_script_attributes_operations_to_package_functions():

@@ -447,6 +447,7 @@ def test_refit_residual_refits_only_from_roots_accepted_below_it(ho_tanh_all):
         assert max_relative_error(problem, sol) <= bound
 
 
+@pytest.mark.long  # 31 s (an all-parameter option); kept out of CI's time budget
 def test_refit_iterations_refits_only_after_quick_solves(ho_tanh_all):
     """`refit_iterations` bounds the iterations of the previous step a refit may start from,
     a guard that still tells roots apart under `settle=0`, whose residuals all sit near its
