@@ -121,7 +121,11 @@ def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: fl
     then keep the digits of the step's change that coefficients of size `|q_n|` would round
     away, and the step is the Galerkin step of a space with the constants (the variation
     that moves `q_n` is in it, so the map stays symplectic in floating point). Its output
-    weights are the features' least-squares fit of the constant."""
+    weights are the features' least-squares fit of the constant.
+
+    Where none of its inputs is traced (a span known when the step is traced), it runs in
+    NumPy but for its SVDs and contractions, which JAX runs (`_eager_reduction`): the same
+    span to the bit as JAX's operations one by one, without compiling each of them."""
     known = not _traced(value, slope, weights, hidden)
     xp = np if known else jnp
     reduce = _eager_reduction if known else _call
