@@ -252,11 +252,12 @@ def floor_timer(members):
     return once, iterations, n
 
 
-def linear_solve_floor(members, repeats):
+def linear_solve_floor(members, repeats, timer=None):
     """Seconds per member of the linear solve of one Newton iteration of the projected step
     (LU of the square reduced Jacobian, `k·D + D` unknowns), vmapped over `members` members
-    of the ensemble's size; the nonlinear iterations of one member's solve; and `k·D + D`."""
-    once, iterations, n = floor_timer(members)
+    of the ensemble's size; the nonlinear iterations of one member's solve; and `k·D + D`.
+    `timer`: what `floor_timer(members)` returned, where the caller has it already."""
+    once, iterations, n = floor_timer(members) if timer is None else timer
     per_member = statistics.median(once() for _ in range(5 * repeats)) / iterations
     return per_member, iterations, n
 
@@ -407,11 +408,11 @@ def fixture_figures(args):
 
 def ensemble_section(args):
     """Sections 4-6: ensembles against a loop, the linear-solve floor, the sharded run."""
-    floor_once = floor_timer(args.members)[0]
+    timer = floor_timer(args.members)  # compiled once, for both uses
     per_loop, rows = ensemble_figures(
-        args.members, args.vmap_members, args.loop_sample, args.repeats, floor=floor_once
+        args.members, args.vmap_members, args.loop_sample, args.repeats, floor=timer[0]
     )
-    per_solve, iterations, n = linear_solve_floor(args.members, args.repeats)
+    per_solve, iterations, n = linear_solve_floor(args.members, args.repeats, timer)
     floor = per_solve * iterations
     bound = per_loop / floor
     print(

@@ -36,22 +36,27 @@ CONSTRAINT_TOLERANCE = 0.5
 CONSTRAINT_GROWTH = 100.0
 
 
-def _momentum_map(ctx: StepContext, q1: Array):
-    """`ϑ(t_{n+1}, ·, v = 0)`, its Jacobian in `q` at `q1`, and whether its Jacobian in `v`
-    vanishes there: both Jacobians from one `jax.jacfwd`."""
+def _momentum_map(ctx: StepContext):
+    """`q ↦ ϑ(t_{n+1}, q, v = 0)`, and `(q, v) ↦ ϑ(t_{n+1}, q, v)`."""
     t = ctx.t + ctx.h
-    v = jnp.zeros_like(q1)
 
-    def theta(q, v_):
-        return ctx.term.momentum(t, q, v_, ctx.args)
+    def theta(q, v):
+        return ctx.term.momentum(t, q, v, ctx.args)
 
-    jq, jv = jax.lax.stop_gradient(jax.jacfwd(theta, argnums=(0, 1))(q1, v))
-    return lambda q: theta(q, v), jq, jnp.all(jv == 0)
+    return lambda q: theta(q, jnp.zeros_like(q)), theta
 
 
-def _gauss_newton_onto(theta, jq: Array, q1: Array, p1: Array) -> Array:
-    """`(∂ϑ/∂q)^+ (p1 − ϑ(q1))`, the pseudo-inverse by SVD (`jnp.linalg.pinv` would put a
-    float64 constant into float32 steps)."""
+def _first_order_at(theta, q1: Array) -> Array:
+    """Whether `∂ϑ/∂v` vanishes at `(q1, v = 0)` (a first-order end point); not
+    differentiated."""
+    jv = jax.lax.stop_gradient(jax.jacfwd(lambda v: theta(q1, v))(jnp.zeros_like(q1)))
+    return jnp.all(jv == 0)
+
+
+def _gauss_newton_onto(theta, q1: Array, p1: Array) -> Array:
+    """`(∂ϑ/∂q)^+ (p1 − ϑ(q1))` for `theta = q ↦ ϑ(q, v = 0)`, the pseudo-inverse by SVD
+    (`jnp.linalg.pinv` would put a float64 constant into float32 steps)."""
+    jq = jax.lax.stop_gradient(jax.jacfwd(theta)(q1))
     work = lapack_dtype(q1.dtype)
     u, sv, vt = jnp.linalg.svd(jq.astype(work))
     kept = sv > 10 * max(jq.shape) * jnp.finfo(work).eps * sv[0]
@@ -76,17 +81,17 @@ def first_order_end_correction(ctx: StepContext, q1: Array, p1: Array) -> Array:
     instead and leaves the others as they are. When `∂ϑ/∂v` has any nonzero entry at the end
     point the change is zero.
     """
-    theta, jq, first_order = _momentum_map(ctx, q1)
-    step = _gauss_newton_onto(theta, jq, q1, p1)
-    return jnp.where(first_order, step, jnp.zeros_like(step))
+    at_rest, theta = _momentum_map(ctx)
+    step = _gauss_newton_onto(at_rest, q1, p1)
+    return jnp.where(_first_order_at(theta, q1), step, jnp.zeros_like(step))
 
 
 def primary_constraint_violation(ctx: StepContext, q1: Array, p1: Array) -> Array:
     """`max|p_{n+1} − ϑ(t_{n+1}, q_{n+1})|` where `ϑ` does not depend on `v` at the end point
     (a first-order Lagrangian), else 0; not differentiated."""
-    theta, _, first_order = _momentum_map(ctx, q1)
-    gap = _gap(theta, q1, p1)
-    return jnp.where(first_order, gap, jnp.zeros_like(gap))
+    at_rest, theta = _momentum_map(ctx)
+    gap = _gap(at_rest, q1, p1)
+    return jnp.where(_first_order_at(theta, q1), gap, jnp.zeros_like(gap))
 
 
 def end_on_constraint(ctx: StepContext, q1: Array, p1: Array, correct: bool = True
@@ -95,19 +100,18 @@ def end_on_constraint(ctx: StepContext, q1: Array, p1: Array, correct: bool = Tr
     (`first_order_end_correction`, with `correct`; else `q1` as it is) and its distance
     from the constraint there (`primary_constraint_violation`).
 
-    The momentum map's Jacobians are formed once, at `q1` (where `ϑ` does not read `v`
-    there, it does not read it at the moved point either: the correction is a rounding-size
-    move). Where `ϑ` reads `v` at the end point (any regular Lagrangian) one `lax.cond`
-    returns `q1` and a zero violation, which is what the two functions give there; only a
-    first-order end state pays for the SVD of the correction. The compiled step holds one
-    derivative of the momentum map, not three."""
-    theta, jq, first_order = _momentum_map(ctx, q1)
+    The test (`∂ϑ/∂v` at the end point) is the only derivative a regular Lagrangian's step
+    pays for: one `lax.cond` on it returns `q1` and a zero violation, which is what the two
+    functions give there, and only a first-order end state forms `∂ϑ/∂q` and the SVD of the
+    correction (where `ϑ` does not read `v` at `q1`, it does not at the moved point either:
+    the move is of the size of the step's error)."""
+    at_rest, theta = _momentum_map(ctx)
 
     def on_constraint(q1, p1):
-        moved = q1 + _gauss_newton_onto(theta, jq, q1, p1) if correct else q1
-        return moved, _gap(theta, moved, p1).astype(jnp.result_type(q1, p1))
+        moved = q1 + _gauss_newton_onto(at_rest, q1, p1) if correct else q1
+        return moved, _gap(at_rest, moved, p1).astype(jnp.result_type(q1, p1))
 
     def regular(q1, p1):
         return q1, jnp.zeros((), jnp.result_type(q1, p1))
 
-    return jax.lax.cond(first_order, on_constraint, regular, q1, p1)
+    return jax.lax.cond(_first_order_at(theta, q1), on_constraint, regular, q1, p1)
