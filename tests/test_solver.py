@@ -392,6 +392,7 @@ def test_fast_configuration_refits_and_keeps_accuracy():
     assert int(default.solver_state.iterations) < int(state.iterations)
 
 
+@pytest.mark.long  # 26 s (an all-parameter option); kept out of CI's time budget
 @CPU_ROUNDING_CASE
 def test_failed_solve_from_a_carried_seed_restarts_from_a_fresh_fit():
     """Double pendulum, h = 0.05: the solve from the refitted neurons stalls on the second
