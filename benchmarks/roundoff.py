@@ -19,11 +19,16 @@
    it at small steps (oscillator h = 0.05, Kepler h = 2π/400 and 2π/100, float32).
 5. Energy bias per step (`--only bias`): each step's end against the exact map (long double)
    of the same discrete Lagrangian from its start, along oscillator trajectories; the mean
-   energy change rounding adds per step, per root finder.
+   energy change rounding adds per step, per root finder, and the change of the determinant
+   of the step's fitted linear map (`rounding_bias.map_deviation`). With `--nudge SEED ...`
+   it measures instead the two `CGVI(7)` Newton steps (with and without `confirm`) on the
+   span as computed and on that span with each entry moved by -1, 0 or +1 ulp at random
+   (one draw per seed; the constant direction kept exact): how the bias depends on the span's
+   last bits.
 
     taskset -c 1 .venv/bin/python -m benchmarks.roundoff \\
         [--steps N] [--only energy|growth|compensation|cost|bias] [--members M]
-        [--solver NAME]
+        [--solver NAME] [--nudge SEED ...]
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import argparse
 import statistics
 import time
 
+import equinox as eqx
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -301,12 +307,42 @@ def bias_configs():
     }
 
 
-def _bias_solver(options):
+def _bias_solver(options, nudge: int | None = None):
     options = dict(options)
     if options.pop("network", False):
         return dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
                              compensated=False, **options)
-    return dvi.CGVI(7, compensated=False, **options)
+    if nudge is None:
+        return dvi.CGVI(7, compensated=False, **options)
+    # CGVI(7)'s projected step (the same solver `dvi.CGVI` builds) on the nudged span
+    return dvi.NetworkVI(dvi.LagrangeBasis(7), dvi.GaussLegendre(8),
+                         formulation=_NudgedProjection(seed=nudge), compensated=False,
+                         **options)
+
+
+def nudge_span(span, seed: int):
+    """`span` with each entry of `gq`, `gv`, `g0` and `gd` moved by -1, 0 or +1 ulp, drawn
+    from `seed`; the constant direction (column 0) is kept exact."""
+    rng = np.random.default_rng(seed)
+
+    def nudge(a):
+        a = np.asarray(a)
+        steps = rng.integers(-1, 2, size=a.shape)
+        steps[..., 0] = 0
+        up, down = np.nextafter(a, np.inf), np.nextafter(a, -np.inf)
+        return jnp.asarray(np.where(steps > 0, up, np.where(steps < 0, down, a)))
+
+    parts = (span.gq, span.gv, span.g0, span.gd)
+    return eqx.tree_at(lambda s: (s.gq, s.gv, s.g0, s.gd), span, tuple(map(nudge, parts)))
+
+
+class _NudgedProjection(dvi.VariableProjection):
+    """The projected step on its span nudged by `nudge_span(span, seed)`."""
+
+    seed: int = eqx.field(static=True, default=0)
+
+    def span(self, theta, ctx):
+        return nudge_span(super().span(theta, ctx), self.seed)
 
 
 def _span(solver, ctx):
@@ -319,13 +355,16 @@ def _span(solver, ctx):
     return form.span(hidden, ctx)
 
 
-def energy_bias(steps: int, members: int) -> None:
+def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> None:
     """Where the energy drift comes from: along `members` oscillator trajectories of `steps`
     uncompensated `CGVI(7)` (or default network) steps (h = 0.5), each step's end is
     compared with the exact map of the same discrete Lagrangian applied to its start
     (`rounding_bias`, long double). The mean of the energy change that rounding adds per
     step is the drift rate; Brouwer's law needs it to vanish (against its standard error),
-    leaving a random walk."""
+    leaving a random walk. The last column is the change of the determinant of the step's
+    fitted linear map (`rounding_bias.map_deviation`), which accounts for that mean. Given
+    `nudges`, the two `CGVI(7)` Newton steps at ftol 1 on the span as computed and nudged
+    by each seed (`nudge_span`)."""
     problem = problems.harmonic_oscillator()
     h, m, k = 0.5, 1.0, 0.5
     omega = (k / m) ** 0.5
@@ -333,13 +372,20 @@ def energy_bias(steps: int, members: int) -> None:
     phases = 2 * np.pi * (np.arange(members) + 0.1234) / members
     print(f"\nenergy bias per step: oscillator, h = {h}, uncompensated, {members} "
           f"trajectories of {steps} steps; mean and standard error over all steps of "
-          "(E(end) - E(exact map of start)) / E0, in units of eps")
-    print("| root finder | mean | standard error | mean / standard error | "
-          "RMS per step | drift over the run (mean x steps, relative) |")
-    print("|---|---|---|---|---|---|")
+          "(E(end) - E(exact map of start)) / E0, in units of eps; det(M) change: of the "
+          "step's fitted linear map, in eps")
+    print("| root finder | span | mean | standard error | mean / standard error | "
+          "RMS per step | drift over the run (mean x steps, relative) | det(M) change |")
+    print("|---|---|---|---|---|---|---|---|")
     eps = float(np.finfo(np.float64).eps)
-    for name, options in bias_configs().items():
-        solver = _bias_solver(options)
+    configs = bias_configs()
+    if nudges is None:
+        runs = [(name, options, None) for name, options in configs.items()]
+    else:
+        chosen = [name for name in configs if name.startswith("Newton, ftol 1")]
+        runs = [(name, configs[name], seed) for seed in [None, *nudges] for name in chosen]
+    for name, options, seed in runs:
+        solver = _bias_solver(options, seed)
         ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
         span = _span(solver, ctx)
 
@@ -350,7 +396,7 @@ def energy_bias(steps: int, members: int) -> None:
             )
 
         run = jax.jit(run)
-        changes = []
+        changes, trajectories = [], []
         for phase in phases:
             q0 = jnp.array([amplitude * np.cos(phase)])
             p0 = jnp.array([-m * omega * amplitude * np.sin(phase)])
@@ -358,10 +404,14 @@ def energy_bias(steps: int, members: int) -> None:
             q = np.asarray(sol.ys[0])[:, 0]
             p = np.asarray(sol.ys[1])[:, 0]
             changes.append(rounding_bias.energy_bias(q, p, span, ctx.weights, h, m, k))
+            trajectories.append((q, p))
+        _, det_change = rounding_bias.map_deviation(trajectories, span, ctx.weights, h, m, k)
         c = np.concatenate(changes)
         mean, se = float(np.mean(c)), float(np.std(c) / np.sqrt(c.size))
-        print(f"| {name} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} | "
-              f"{float(np.sqrt(np.mean(c**2))):.2f} | {mean * steps * eps:+.1e} |", flush=True)
+        label = "as computed" if seed is None else f"nudged, seed {seed}"
+        print(f"| {name} | {label} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} | "
+              f"{float(np.sqrt(np.mean(c**2))):.2f} | {mean * steps * eps:+.1e} "
+              f"| {det_change:+.2e} |", flush=True)
 
 
 def main(argv=None) -> None:
@@ -372,6 +422,8 @@ def main(argv=None) -> None:
                         default=None)
     parser.add_argument("--members", type=int, default=16)
     parser.add_argument("--solver", default=None, help="growth: only solvers whose name has this")
+    parser.add_argument("--nudge", type=int, nargs="+", default=None, metavar="SEED",
+                        help="bias: CGVI(7)'s Newton steps on spans nudged by these seeds")
     args = parser.parse_args(argv)
     if args.only in (None, "energy"):
         energy_growth(args.steps)
@@ -382,7 +434,7 @@ def main(argv=None) -> None:
     if args.only in (None, "cost"):
         step_cost()
     if args.only in (None, "bias"):
-        energy_bias(min(args.steps, 100_000), min(args.members, 4))
+        energy_bias(min(args.steps, 100_000), min(args.members, 4), args.nudge)
 
 
 if __name__ == "__main__":

@@ -311,6 +311,7 @@ def test_harmonic_oscillator_dense_lsgd():
     assert np.max(iterations(sol)) <= 15
 
 
+@pytest.mark.long
 def test_harmonic_oscillator_dense_training_method():
     problem = problems.harmonic_oscillator()
     # Adam's seed is far less accurate than LSGD's, and Newton lands on a less accurate root of

@@ -813,6 +813,7 @@ def test_step_structure_script_reports_the_three_spectra(tmp_path, capsys):
         module.main(["--tiny", "--activations", "relu", "--out", "-"])
 
 
+@pytest.mark.long
 def test_projection_script_energy_section(capsys):
     """benchmarks.projection --sections energy: a 20-step oscillator run per solver, with
     every solver's row successful and an energy error at the level of a converged step."""

@@ -100,6 +100,7 @@ def test_a_success_far_off_the_solution_is_recorded_as_escaped():
     assert hp.front(marked) == [(2.0, 1e-9)]
 
 
+@pytest.mark.long
 def test_tiny_run_records_rows_and_failures(tmp_path):
     """Two steps per period of the oscillator: CGVI(2) runs, and a CGVI(2) allowed one Newton
     iteration a step fails; both are rows, the failure with its status and no error."""

@@ -127,7 +127,7 @@ SHARDED = textwrap.dedent(
 )
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_sharded_over_8_devices_matches_unsharded():
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ)

@@ -102,6 +102,7 @@ def test_reversible_variants_step_back_to_the_start(method, name):
     assert roundtrip(problem, method(B(dvi.tanh, 10), GL(nodes))) <= 1e-12
 
 
+@pytest.mark.long
 def test_shared_output_weights_are_shared_in_the_solve_and_order_four():
     solver = dvi.ShallowNetAutodiffReversible(B(dvi.gelu, 8), GL(8), shared_output_weights=True)
     assert isinstance(solver.basis.symmetry, dvi.SharedMirrorPairs)
@@ -307,6 +308,7 @@ def test_hermite_labels_come_from_the_previous_step():
 # -- derivative backends ----------------------------------------------------------------------
 
 
+@pytest.mark.long
 def test_sympy_and_autodiff_backends_agree_on_a_solution():
     problem = problems.harmonic_oscillator()
     sols = [

@@ -151,6 +151,77 @@ def test_confirming_update_removes_the_energy_bias_of_a_step():
     assert abs(confirmed) < 3 * se, means
 
 
+def test_map_deviation_finds_a_step_that_scales_phase_space():
+    """Trajectories of the oscillator's exact map plus a known matrix `D` (tenths of eps),
+    rounded to float64 after every step: the fit gives `D` back, and the change of the
+    determinant it reports is the mean energy change per step that `energy_bias` measures
+    (a symplectic step would leave zero)."""
+    from diffrax_vi.bench.rounding_bias import energy_bias, exact_increments, map_deviation
+
+    problem = problems.harmonic_oscillator()
+    h, m, k = 0.5, 1.0, 0.5
+    solver = dvi.CGVI(7, compensated=False)
+    ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
+    span = solver.formulation.span(jnp.zeros((solver.basis.num_params(), 1)), ctx)
+    eps = float(np.finfo(np.float64).eps)
+    ld = np.longdouble
+    dq, dp = exact_increments(span, ctx.weights, h, np.array([1.0, 0.0]),
+                              np.array([0.0, 1.0]), m, k)
+    exact = np.eye(2, dtype=ld) + np.stack([dq, dp])
+    d = np.array([[0.2, -0.1], [0.1, 0.3]])
+    step = exact + d.astype(ld) * ld(eps)
+    trajectories, changes = [], []
+    for phase in (0.3, 2.0):
+        y = np.array([0.5 * np.cos(phase), -0.5 * np.sqrt(0.5) * np.sin(phase)])
+        ys = [y]
+        for _ in range(10_000):
+            y = np.asarray(step @ y.astype(ld), np.float64)
+            ys.append(y)
+        q, p = np.array(ys).T
+        trajectories.append((q, p))
+        changes.append(energy_bias(q, p, span, ctx.weights, h, m, k))
+    fitted, det_change = map_deviation(trajectories, span, ctx.weights, h, m, k)
+    assert np.max(np.abs(fitted - d)) < 0.02, fitted
+    a, b, c, e = (float(x) for x in exact.ravel())
+    expected = e * d[0, 0] - c * d[0, 1] - b * d[1, 0] + a * d[1, 1]
+    assert abs(det_change - expected) < 0.02, (det_change, expected)
+    change = np.concatenate(changes)
+    se = float(np.std(change) / np.sqrt(change.size))
+    assert abs(float(np.mean(change)) - expected) < 4 * se + 0.01, (np.mean(change), expected)
+    # the exact map alone, rounded to float64 each step: no deviation, no bias
+    clean = np.eye(2, dtype=ld) + np.stack([dq, dp])
+    y = np.array([0.5, 0.0])
+    ys = [y]
+    for _ in range(10_000):
+        y = np.asarray(clean @ y.astype(ld), np.float64)
+        ys.append(y)
+    q, p = np.array(ys).T
+    fitted, det_change = map_deviation([(q, p)], span, ctx.weights, h, m, k)
+    assert np.max(np.abs(fitted)) < 0.02 and abs(det_change) < 0.02, (fitted, det_change)
+
+
+def test_nudged_span_moves_each_entry_by_at_most_one_ulp():
+    """`benchmarks.roundoff --nudge`: the span of `CGVI(7)`'s projected step with its
+    entries moved by -1, 0 or +1 ulp (the constant direction exact), reproducibly per seed,
+    and the solver it builds steps on that span."""
+    from benchmarks.roundoff import _bias_solver, _span, bias_configs, nudge_span
+
+    problem = problems.harmonic_oscillator()
+    options = bias_configs()["Newton, ftol 1 (CGVI's default: confirm)"]
+    plain = _bias_solver(options)
+    ctx = plain.step_context(problem.term, 0.0, 0.5, problem.y0, problem.args)
+    span = _span(plain, ctx)
+    moved = nudge_span(span, 3)
+    for name in ("gq", "gv", "g0", "gd"):
+        a, b = np.asarray(getattr(span, name)), np.asarray(getattr(moved, name))
+        up, down = np.nextafter(a, np.inf), np.nextafter(a, -np.inf)
+        assert np.all((b == a) | (b == up) | (b == down)), name
+        assert np.array_equal(a[..., 0], b[..., 0]) and np.any(a != b), name
+        assert np.array_equal(b, np.asarray(getattr(nudge_span(span, 3), name)))
+    nudged = _bias_solver(options, nudge=3)
+    assert np.array_equal(np.asarray(_span(nudged, ctx).gq), np.asarray(moved.gq))
+
+
 def test_precision_vocabulary():
     from diffrax_vi.precision import compensated_add, floating_dtype, lapack_dtype
 

@@ -391,6 +391,7 @@ def test_the_fixed_layer_refuses_seed_options_it_would_ignore():
     assert solver.seed.initial_guess.dict_amount == 400
 
 
+@pytest.mark.long
 def test_first_seed_layer_is_one_compiled_path_for_vmap_and_loop():
     # With the first step's hidden layer kept, every later step starts from the previous
     # curve continued and solves on the same span: no per-step seed fit whose greedy choices

@@ -347,6 +347,7 @@ def test_closed_form_jacobian_matches_the_dense_one_in_distribution():
     assert med_auto <= 3 * med_fwd and med_auto <= 1e-10, summary
 
 
+@pytest.mark.long
 def test_gradient_through_a_step_with_the_block_jacobian():
     """Implicit differentiation sees the step context the block Jacobian depends on (it was
     closed over, and `jax.grad` of a solve failed with a leaked tracer)."""
@@ -373,6 +374,7 @@ FAST = dict(
 )
 
 
+@pytest.mark.long
 def test_fast_configuration_refits_and_keeps_accuracy():
     """Refitted neurons seed every step after the first; results stay at the floor level
     (measured 1.2e-11 against 2.3e-13 with the defaults), at <= 3 iterations per step."""
@@ -480,6 +482,7 @@ def test_refit_iterations_refits_only_after_quick_solves(ho_tanh_all):
     assert max_relative_error(problem, capped) <= 2e-11
 
 
+@pytest.mark.long
 @CPU_ROUNDING_CASE
 def test_growing_damping_rescues_a_stalled_step():
     """A step that stalled under a fixed Levenberg–Marquardt damping converges once the
@@ -511,6 +514,7 @@ def test_growing_damping_rescues_a_stalled_step():
     assert np.max(np.abs(np.asarray(grown.ys[0]) - q_ref)) / amplitude <= 5e-10
 
 
+@pytest.mark.long
 def test_fast_configuration_in_an_ensemble_matches_single_solves():
     """The OGA fallback is a while loop, lazy under vmap: members agree with single solves."""
     problem = problems.harmonic_oscillator()

@@ -6,13 +6,16 @@ float64 step used: the exact map of the same discrete Lagrangian, which is sympl
 a float64 trajectory, `energy_bias` compares each step's end with that map applied to the
 step's start; the mean of the energy change that rounding adds is the step's drift rate
 (Brouwer's law of random rounding needs it to vanish), its spread the random walk.
+`map_deviation` finds where that mean comes from: the float64 step, fitted as a linear map
+along its trajectories, differs from the exact map by a fixed matrix, and the change of the
+map's determinant (zero for a symplectic map) is the drift rate.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["energy_bias", "exact_increments"]
+__all__ = ["energy_bias", "exact_increments", "map_deviation"]
 
 _LD = np.longdouble
 
@@ -77,3 +80,38 @@ def energy_bias(q: np.ndarray, p: np.ndarray, span, weights, h: float, m: float,
     e0 = energy(q[0], p[0])
     change = (energy(q[1:], p[1:]) - energy(q[:-1] + dq, p[:-1] + dp)) / e0
     return np.asarray(change, np.float64) / float(np.finfo(np.float64).eps)
+
+
+def map_deviation(trajectories, span, weights, h: float, m: float, k: float
+                  ) -> tuple[np.ndarray, float]:
+    """`(ΔM, Δdet)` in units of float64's eps: the float64 oscillator step seen as a linear map.
+
+    `trajectories` is a sequence of `(q, p)` float64 runs (`(n + 1,)` each) of one step. The
+    deviation `ΔM` (`(2, 2)`, rows `q`, `p` of the end, columns of the start) is the least-
+    squares fit, in long double, of each step's end minus the exact map of its start
+    (`exact_increments`) against the start; what the fit leaves is the rounding that varies
+    from step to step. `Δdet = det(M + ΔM) − det(M)`: the exact map `M` is symplectic
+    (determinant 1), so a nonzero `Δdet` is a step that scales phase-space area, and with it
+    the energy, by `1 + Δdet` on average: the mean of `energy_bias`.
+    """
+    starts, deviations = [], []
+    for q, p in trajectories:
+        q, p = (np.asarray(x, np.float64).astype(_LD) for x in (q, p))
+        dq, dp = exact_increments(span, weights, h, q[:-1], p[:-1], m, k)
+        starts.append(np.stack([q[:-1], p[:-1]], axis=1))
+        deviations.append(np.stack([q[1:] - (q[:-1] + dq), p[1:] - (p[:-1] + dp)], axis=1))
+    x, d = np.concatenate(starts), np.concatenate(deviations)
+    # normal equations of the 2 x 2 fit, solved by Cramer's rule (long double throughout)
+    g, r = x.T @ x, x.T @ d
+    det_g = g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]
+    inverse = np.array([[g[1, 1], -g[0, 1]], [-g[1, 0], g[0, 0]]], _LD) / det_g
+    dm = (inverse @ r).T
+    unit_q, unit_p = exact_increments(span, weights, h, np.array([1.0, 0.0]),
+                                      np.array([0.0, 1.0]), m, k)
+    exact = np.eye(2, dtype=_LD) + np.stack([unit_q, unit_p])
+    a, b, c, e = exact[0, 0], exact[0, 1], exact[1, 0], exact[1, 1]
+    # det(M + ΔM) − det(M), without forming det(M + ΔM) (it would round to 1)
+    change = (e * dm[0, 0] - c * dm[0, 1] - b * dm[1, 0] + a * dm[1, 1]
+              + dm[0, 0] * dm[1, 1] - dm[0, 1] * dm[1, 0])
+    eps = float(np.finfo(np.float64).eps)
+    return np.asarray(dm, np.float64) / eps, float(change) / eps
