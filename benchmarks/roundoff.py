@@ -21,7 +21,9 @@
    of the same discrete Lagrangian from its start, along oscillator trajectories; the mean
    energy change rounding adds per step, per root finder, and the change of the determinant
    of the step's fitted linear map (`rounding_bias.map_deviation`). With `--nudge SEED ...`
-   it measures instead the two `CGVI(7)` Newton steps (with and without `confirm`) on the
+   it measures instead `CGVI(7)`'s three Newton steps (ftol 1 with and without `confirm`,
+   ftol 0) and its chord iteration to round-off with and without `predict` (with: its
+   default) on the
    span as computed and on that span with each entry moved by -1, 0 or +1 ulp at random
    (one draw per seed; the constant direction kept exact): how the bias depends on the span's
    last bits.
@@ -294,12 +296,12 @@ def bias_configs():
     return {
         "Newton, ftol 1, without confirm (the default before)": dict(
             root_finder=rf(ftol=1.0, confirm=False)),
-        "Newton, ftol 1 (CGVI's default: confirm)": dict(root_finder=rf(ftol=1.0)),
+        "Newton, ftol 1, confirm": dict(root_finder=rf(ftol=1.0)),
         "Newton, ftol 0": dict(root_finder=rf(ftol=0.0)),
         "chord, ftol 1, without confirm": dict(root_finder=fp(ftol=1.0, confirm=False)),
         "chord, ftol 1": dict(root_finder=fp(ftol=1.0)),
         "chord, ftol 0": dict(root_finder=fp(ftol=0.0)),
-        "chord, ftol 0, predict": dict(root_finder=fp(ftol=0.0, predict=True)),
+        "chord, ftol 0, predict (CGVI's default)": dict(root_finder=fp(ftol=0.0, predict=True)),
         "kinetic, ftol 0": dict(root_finder=fp(ftol=0.0, matrix="kinetic")),
         "NetworkVI (tanh 10, GL8): default (ftol 64, without confirm)": dict(network=True),
         "NetworkVI: ftol 64, confirm": dict(network=True, root_finder=rf(ftol=64.0)),
@@ -363,8 +365,9 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
     step is the drift rate; Brouwer's law needs it to vanish (against its standard error),
     leaving a random walk. The last column is the change of the determinant of the step's
     fitted linear map (`rounding_bias.map_deviation`), which accounts for that mean. Given
-    `nudges`, the two `CGVI(7)` Newton steps at ftol 1 on the span as computed and nudged
-    by each seed (`nudge_span`)."""
+    `nudges`, `CGVI(7)`'s three Newton steps (ftol 1 with and without `confirm`, ftol 0) and
+    its chord iteration to round-off with and without `predict` (with: its default) on the
+    span as computed and nudged by each seed (`nudge_span`)."""
     problem = problems.harmonic_oscillator()
     h, m, k = 0.5, 1.0, 0.5
     omega = (k / m) ** 0.5
@@ -382,7 +385,8 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
     if nudges is None:
         runs = [(name, options, None) for name, options in configs.items()]
     else:
-        chosen = [name for name in configs if name.startswith("Newton, ftol 1")]
+        chosen = [name for name in configs
+                  if name.startswith(("Newton, ftol", "chord, ftol 0"))]
         runs = [(name, configs[name], seed) for seed in [None, *nudges] for name in chosen]
     for name, options, seed in runs:
         solver = _bias_solver(options, seed)

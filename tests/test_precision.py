@@ -207,7 +207,7 @@ def test_nudged_span_moves_each_entry_by_at_most_one_ulp():
     from benchmarks.roundoff import _bias_solver, _span, bias_configs, nudge_span
 
     problem = problems.harmonic_oscillator()
-    options = bias_configs()["Newton, ftol 1 (CGVI's default: confirm)"]
+    options = bias_configs()["Newton, ftol 1, confirm"]
     plain = _bias_solver(options)
     ctx = plain.step_context(problem.term, 0.0, 0.5, problem.y0, problem.args)
     span = _span(plain, ctx)
