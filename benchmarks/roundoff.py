@@ -23,10 +23,9 @@
    of the step's fitted linear map (`rounding_bias.map_deviation`). With `--nudge SEED ...`
    it measures instead `CGVI(7)`'s three Newton steps (ftol 1 with and without `confirm`,
    ftol 0) and its chord iteration to round-off with and without `predict` (with: its
-   default) on the
-   span as computed and on that span with each entry moved by -1, 0 or +1 ulp at random
-   (one draw per seed; the constant direction kept exact): how the bias depends on the span's
-   last bits.
+   default) on the span as computed and on that span with each entry moved by -1, 0 or +1
+   ulp at random (one draw per seed; the constant direction kept exact): how the bias
+   depends on the span's last bits.
 
     taskset -c 1 .venv/bin/python -m benchmarks.roundoff \\
         [--steps N] [--only energy|growth|compensation|cost|bias] [--members M]
