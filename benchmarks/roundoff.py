@@ -375,10 +375,11 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
     print(f"\nenergy bias per step: oscillator, h = {h}, uncompensated, {members} "
           f"trajectories of {steps} steps; mean and standard error over all steps of "
           "(E(end) - E(exact map of start)) / E0, in units of eps; det(M) change: of the "
-          "step's fitted linear map, in eps")
+          "step's fitted linear map, in eps; iterations: the root finder's updates per step")
     print("| root finder | span | mean | standard error | mean / standard error | "
-          "RMS per step | drift over the run (mean x steps, relative) | det(M) change |")
-    print("|---|---|---|---|---|---|---|---|")
+          "RMS per step | drift over the run (mean x steps, relative) | det(M) change "
+          "| iterations per step (mean) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     eps = float(np.finfo(np.float64).eps)
     configs = bias_configs()
     if nudges is None:
@@ -395,11 +396,12 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
         def run(q, p, solver=solver):
             return diffrax.diffeqsolve(
                 problem.term, solver, 0.0, steps * h, h, (q, p), args=problem.args,
-                max_steps=steps, saveat=diffrax.SaveAt(t0=True, steps=True), throw=False,
+                max_steps=steps, saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
+                throw=False,
             )
 
         run = jax.jit(run)
-        changes, trajectories = [], []
+        changes, trajectories, histogram = [], [], 0
         for phase in phases:
             q0 = jnp.array([amplitude * np.cos(phase)])
             p0 = jnp.array([-m * omega * amplitude * np.sin(phase)])
@@ -408,13 +410,15 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
             p = np.asarray(sol.ys[1])[:, 0]
             changes.append(rounding_bias.energy_bias(q, p, span, ctx.weights, h, m, k))
             trajectories.append((q, p))
+            histogram = histogram + np.asarray(sol.solver_state.histogram)
+        iterations = float(np.arange(len(histogram)) @ histogram / np.sum(histogram))
         _, det_change = rounding_bias.map_deviation(trajectories, span, ctx.weights, h, m, k)
         c = np.concatenate(changes)
         mean, se = float(np.mean(c)), float(np.std(c) / np.sqrt(c.size))
         label = "as computed" if seed is None else f"nudged, seed {seed}"
         print(f"| {name} | {label} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} | "
               f"{float(np.sqrt(np.mean(c**2))):.2f} | {mean * steps * eps:+.1e} "
-              f"| {det_change:+.2e} |", flush=True)
+              f"| {det_change:+.2e} | {iterations:.2f} |", flush=True)
 
 
 def main(argv=None) -> None:

@@ -151,6 +151,41 @@ def test_confirming_update_removes_the_energy_bias_of_a_step():
     assert abs(confirmed) < 3 * se, means
 
 
+@pytest.mark.long
+@pytest.mark.parametrize("seed", [None, 1, 2, 3])
+def test_newton_to_round_off_leaves_no_energy_bias_on_nudged_spans(seed):
+    """Newton's iteration until its updates stop shrinking (`ftol=0`) leaves no energy bias
+    on `CGVI(7)`'s span as computed nor on spans moved by one ulp (`benchmarks.roundoff
+    --nudge`), where `confirm` keeps one on seed 3 (benchmarks page, "Where a drift comes
+    from"): zero within three standard errors, and the determinant of the step's fitted
+    linear map changes by as little."""
+    from benchmarks.roundoff import _bias_solver, _span, bias_configs
+    from diffrax_vi.bench.rounding_bias import energy_bias, map_deviation
+
+    problem = problems.harmonic_oscillator()
+    h, m, k, steps = 0.5, 1.0, 0.5, 100_000
+    solver = _bias_solver(bias_configs()["Newton, ftol 0"], seed)
+    ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
+    span = _span(solver, ctx)
+    run = jax.jit(lambda y: diffrax.diffeqsolve(
+        problem.term, solver, 0.0, steps * h, h, y, args=problem.args, max_steps=steps,
+        saveat=diffrax.SaveAt(t0=True, steps=True), throw=False))
+    changes, trajectories = [], []
+    for phase in (0.3, 1.9, 3.5, 5.1):
+        y0 = (jnp.array([0.5 * np.cos(phase)]),
+              jnp.array([-0.5 * np.sqrt(0.5) * np.sin(phase)]))
+        sol = run(y0)
+        assert sol.result == diffrax.RESULTS.successful
+        q, p = np.asarray(sol.ys[0])[:, 0], np.asarray(sol.ys[1])[:, 0]
+        changes.append(energy_bias(q, p, span, ctx.weights, h, m, k))
+        trajectories.append((q, p))
+    c = np.concatenate(changes)
+    mean, se = float(np.mean(c)), float(np.std(c) / np.sqrt(c.size))
+    _, det_change = map_deviation(trajectories, span, ctx.weights, h, m, k)
+    assert abs(mean) < 3 * se, (mean, se)
+    assert abs(det_change) < 3 * se, (det_change, se)
+
+
 def test_map_deviation_finds_a_step_that_scales_phase_space():
     """Trajectories of the oscillator's exact map plus a known matrix `D` (tenths of eps),
     rounded to float64 after every step: the fit gives `D` back, and the change of the
