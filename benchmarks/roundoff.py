@@ -362,8 +362,9 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
     compared with the exact map of the same discrete Lagrangian applied to its start
     (`rounding_bias`, long double). The mean of the energy change that rounding adds per
     step is the drift rate; Brouwer's law needs it to vanish (against its standard error),
-    leaving a random walk. The last column is the change of the determinant of the step's
-    fitted linear map (`rounding_bias.map_deviation`), which accounts for that mean. Given
+    leaving a random walk. The `det(M) change` column is the change of the determinant of
+    the step's fitted linear map (`rounding_bias.map_deviation`), which accounts for that
+    mean; the last, the root finder's updates per step. Given
     `nudges`, `CGVI(7)`'s three Newton steps (ftol 1 with and without `confirm`, ftol 0) and
     its chord iteration to round-off with and without `predict` (with: its default) on the
     span as computed and nudged by each seed (`nudge_span`)."""
