@@ -233,6 +233,8 @@ def test_map_deviation_finds_a_step_that_scales_phase_space():
     q, p = np.array(ys).T
     fitted, det_change = map_deviation([(q, p)], span, ctx.weights, h, m, k)
     assert np.max(np.abs(fitted)) < 0.02 and abs(det_change) < 0.02, (fitted, det_change)
+    with pytest.raises(ValueError, match="at least two steps"):
+        map_deviation([(q[:2], p[:2])], span, ctx.weights, h, m, k)
 
 
 def test_nudged_span_moves_each_entry_by_at_most_one_ulp():

@@ -94,13 +94,16 @@ def map_deviation(trajectories, span, weights, h: float, m: float, k: float
     (determinant 1), so a nonzero `Δdet` is a step that scales phase-space area, and with it
     the energy, by `1 + Δdet` on average: the mean of `energy_bias`.
     """
-    starts, deviations = [], []
+    starts, deviations = [np.zeros((0, 2), _LD)], [np.zeros((0, 2), _LD)]
     for q, p in trajectories:
         q, p = (np.asarray(x, np.float64).astype(_LD) for x in (q, p))
         dq, dp = exact_increments(span, weights, h, q[:-1], p[:-1], m, k)
         starts.append(np.stack([q[:-1], p[:-1]], axis=1))
         deviations.append(np.stack([q[1:] - (q[:-1] + dq), p[1:] - (p[:-1] + dp)], axis=1))
     x, d = np.concatenate(starts), np.concatenate(deviations)
+    if x.shape[0] < 2:
+        raise ValueError(f"map_deviation needs at least two steps to fit a 2 x 2 map, got "
+                         f"{x.shape[0]}")
     # normal equations of the 2 x 2 fit, solved by Cramer's rule (long double throughout)
     g, r = x.T @ x, x.T @ d
     det_g = g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]
