@@ -25,16 +25,20 @@
    ftol 0) and its chord iteration to round-off with and without `predict` (with: its
    default) on the span as computed and on that span with each entry moved by -1, 0 or +1
    ulp at random (one draw per seed; the constant direction kept exact): how the bias
-   depends on the span's last bits.
+   depends on the span's last bits. With `--updates K ...` as well, Newton's iteration with
+   exactly `K` updates per step and Newton to round-off (ftol 0) instead, then each root
+   finder's mean bias over the spans: whether the number of updates or the stopping rule
+   decides the bias.
 
     taskset -c 1 .venv/bin/python -m benchmarks.roundoff \\
         [--steps N] [--only energy|growth|compensation|cost|bias] [--members M]
-        [--solver NAME] [--nudge SEED ...]
+        [--solver NAME] [--nudge SEED ...] [--updates K ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 
@@ -46,10 +50,12 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+import optimistix as optx  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 from diffrax_vi.bench import rounding_bias  # noqa: E402
+from diffrax_vi.step_solve import FIRST_TRY  # noqa: E402
 
 
 def energy_configs():
@@ -356,7 +362,24 @@ def _span(solver, ctx):
     return form.span(hidden, ctx)
 
 
-def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> None:
+class _FixedUpdates(dvi.RoundoffNewton):
+    """`RoundoffNewton` that ends every solve after exactly `updates` full Newton updates,
+    whatever the residual: how the bias depends on the number of updates alone, without a
+    stopping rule choosing it (a study tool, not a root finder to use)."""
+
+    updates: int = eqx.field(static=True, default=2)
+
+    def _update(self, fn, y, args, options, state):
+        y, state, aux = super()._update(fn, y, args, options, state)
+        done = state.iterations >= self.updates
+        return y, dataclasses.replace(state, converged=done, at_floor=jnp.zeros_like(done)), aux
+
+    def _ended(self, state):
+        return state.iterations >= self.updates, optx.RESULTS.successful
+
+
+def energy_bias(steps: int, members: int, nudges: list[int] | None = None,
+                updates: list[int] | None = None) -> None:
     """Where the energy drift comes from: along `members` oscillator trajectories of `steps`
     uncompensated `CGVI(7)` (or default network) steps (h = 0.5), each step's end is
     compared with the exact map of the same discrete Lagrangian applied to its start
@@ -367,11 +390,10 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
     mean; the last, the root finder's updates per step. Given
     `nudges`, `CGVI(7)`'s three Newton steps (ftol 1 with and without `confirm`, ftol 0) and
     its chord iteration to round-off with and without `predict` (with: its default) on the
-    span as computed and nudged by each seed (`nudge_span`)."""
-    problem = problems.harmonic_oscillator()
+    span as computed and nudged by each seed (`nudge_span`); given also `updates`, Newton
+    with exactly each number of updates (`_FixedUpdates`) and to round-off (ftol 0) instead.
+    A run over several spans ends with each root finder's mean bias over the spans."""
     h, m, k = 0.5, 1.0, 0.5
-    omega = (k / m) ** 0.5
-    amplitude = float(problem.y0[0][0])
     phases = 2 * np.pi * (np.arange(members) + 0.1234) / members
     print(f"\nenergy bias per step: oscillator, h = {h}, uncompensated, {members} "
           f"trajectories of {steps} steps; mean and standard error over all steps of "
@@ -383,43 +405,52 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None) -> No
     print("|---|---|---|---|---|---|---|---|---|")
     eps = float(np.finfo(np.float64).eps)
     configs = bias_configs()
+    if updates:
+        configs = {
+            **{f"Newton, exactly {n} updates": dict(root_finder=_FixedUpdates(ftol=0.0,
+                                                                                updates=n))
+               for n in updates},
+            "Newton, ftol 0": configs["Newton, ftol 0"],
+        }
     if nudges is None:
         runs = [(name, options, None) for name, options in configs.items()]
     else:
         chosen = [name for name in configs
-                  if name.startswith(("Newton, ftol", "chord, ftol 0"))]
+                  if name.startswith(("Newton, ftol", "Newton, exactly", "chord, ftol 0"))]
         runs = [(name, configs[name], seed) for seed in [None, *nudges] for name in chosen]
+    per_finder = {}
     for name, options, seed in runs:
         solver = _bias_solver(options, seed)
-        ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
+        ctx = solver.step_context(*_oscillator_step(h))
         span = _span(solver, ctx)
-
-        def run(q, p, solver=solver):
-            return diffrax.diffeqsolve(
-                problem.term, solver, 0.0, steps * h, h, (q, p), args=problem.args,
-                max_steps=steps, saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
-                throw=False,
-            )
-
-        run = jax.jit(run)
-        changes, trajectories, histogram = [], [], 0
-        for phase in phases:
-            q0 = jnp.array([amplitude * np.cos(phase)])
-            p0 = jnp.array([-m * omega * amplitude * np.sin(phase)])
-            sol = run(q0, p0)
-            q = np.asarray(sol.ys[0])[:, 0]
-            p = np.asarray(sol.ys[1])[:, 0]
-            changes.append(rounding_bias.energy_bias(q, p, span, ctx.weights, h, m, k))
-            trajectories.append((q, p))
-            histogram = histogram + np.asarray(sol.solver_state.histogram)
+        trajectories, histogram = rounding_bias.oscillator_runs(
+            solver, steps, phases, h, m, k, amplitude=0.5)
         iterations = float(np.arange(len(histogram)) @ histogram / np.sum(histogram))
-        _, det_change = rounding_bias.map_deviation(trajectories, span, ctx.weights, h, m, k)
-        c = np.concatenate(changes)
-        mean, se = float(np.mean(c)), float(np.std(c) / np.sqrt(c.size))
+        stats = rounding_bias.bias_statistics(trajectories, span, ctx.weights, h, m, k)
+        per_finder.setdefault(name, []).append(stats)
         label = "as computed" if seed is None else f"nudged, seed {seed}"
-        print(f"| {name} | {label} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} | "
-              f"{float(np.sqrt(np.mean(c**2))):.2f} | {mean * steps * eps:+.1e} "
-              f"| {det_change:+.2e} | {iterations:.2f} |", flush=True)
+        print(f"| {name} | {label} | {stats.mean:+.2e} | {stats.se:.1e} "
+              f"| {stats.mean / stats.se:+.1f} | {stats.rms:.2f} "
+              f"| {stats.mean * steps * eps:+.1e} | {stats.det_change:+.2e} "
+              f"| {iterations:.2f} |", flush=True)
+    if nudges:
+        print("\nover the spans: the mean of the spans' mean biases, its standard error (from "
+              "the spans' own), and the spans whose bias is beyond 3 of their standard errors")
+        print("| root finder | spans | mean over the spans | standard error | "
+              "mean / standard error | spans beyond 3 SE |")
+        print("|---|---|---|---|---|---|")
+        for name, rows in per_finder.items():
+            mean = float(np.mean([r.mean for r in rows]))
+            se = float(np.sqrt(np.sum([r.se**2 for r in rows])) / len(rows))
+            beyond = sum(abs(r.mean) > 3 * r.se for r in rows)
+            print(f"| {name} | {len(rows)} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} "
+                  f"| {beyond} |", flush=True)
+
+
+def _oscillator_step(h: float):
+    """`(term, t0, dt, y0, args)` of the oscillator's step, for `step_context`."""
+    problem = problems.harmonic_oscillator()
+    return problem.term, 0.0, h, problem.y0, problem.args
 
 
 def main(argv=None) -> None:
@@ -432,7 +463,12 @@ def main(argv=None) -> None:
     parser.add_argument("--solver", default=None, help="growth: only solvers whose name has this")
     parser.add_argument("--nudge", type=int, nargs="+", default=None, metavar="SEED",
                         help="bias: CGVI(7)'s Newton steps on spans nudged by these seeds")
+    parser.add_argument("--updates", type=int, nargs="+", default=None, metavar="K",
+                        help="bias: Newton with exactly K updates per step (and ftol 0)")
     args = parser.parse_args(argv)
+    if args.updates and not all(1 <= n <= FIRST_TRY for n in args.updates):
+        parser.error(f"--updates: each K must be from 1 to {FIRST_TRY} (a solve not ended "
+                     f"after {FIRST_TRY} updates restarts), got {args.updates}")
     if args.only in (None, "energy"):
         energy_growth(args.steps)
     if args.only in (None, "growth"):
@@ -442,7 +478,7 @@ def main(argv=None) -> None:
     if args.only in (None, "cost"):
         step_cost()
     if args.only in (None, "bias"):
-        energy_bias(min(args.steps, 100_000), min(args.members, 4), args.nudge)
+        energy_bias(min(args.steps, 100_000), min(args.members, 4), args.nudge, args.updates)
 
 
 if __name__ == "__main__":

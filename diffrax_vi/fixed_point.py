@@ -136,8 +136,9 @@ class FixedPointIteration(RoundoffNewton):
     - `predict`: also converge once the contraction factor `θ` (the larger of the last two
       ratios of successive updates) predicts a remaining error `θ/(1 − θ)·max|Δz|` below
       `1/1024` of a rounding unit of the unknowns, with the residual within `floor`: the
-      round-off limit without the updates that only confirm it (with `ftol=0`, a solve to
-      round-off in about half the updates; the benchmarks page). An update within a few
+      round-off limit in about half the updates of `ftol=0` alone. Those updates are not
+      all idle: over many spans, a solve ended this early keeps a small mean energy bias
+      that one run to round-off does not (the benchmarks page). An update within a few
       rounding units of the unknowns is rounding noise, whose ratio to the update before
       says nothing of the rate: there the ratio before it is the rate, and the noise's size
       the update. Never after the first update. Default `False`.

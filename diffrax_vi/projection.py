@@ -760,9 +760,10 @@ class RoundoffNewton(AbstractStepRootFinder):
       unknowns (default `True`). The update that first brings the residual under `ftol`
       starts from the start's error, and the rounding of the iteration matrix leaves a part
       of that error behind which is a fixed linear function of the state: the same bias on
-      every step, which makes the energy drift linearly (measured on the oscillator: about
-      4·10⁻³ eps per step). One more update, from within `√eps`, leaves a bias of order
-      `eps^1.5`. It costs about one update per step; `False` skips it.
+      every step, which makes the energy drift linearly (on the oscillator, thousandths of
+      eps per step). One more update, from within `√eps`, shrinks that bias but does not
+      remove it on every span; `ftol=0` does (the benchmarks page on long runs). It costs
+      about one update per step; `False` skips it.
     - `max_backtracks`: halvings of the step in one line search. Default 20.
     - `max_stalls`: line searches in a row without decrease before giving up. Default 3.
     - `rtol`, `atol`, `norm`: unused; diffrax reads them off the root finder of an implicit

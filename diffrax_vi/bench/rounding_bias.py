@@ -8,14 +8,25 @@ step's start; the mean of the energy change that rounding adds is the step's dri
 (Brouwer's law of random rounding needs it to vanish), its spread the random walk.
 `map_deviation` finds where that mean comes from: the float64 step, fitted as a linear map
 along its trajectories, differs from the exact map by a fixed matrix, and the change of the
-map's determinant (zero for a symplectic map) is the drift rate.
+map's determinant (zero for a symplectic map) is the drift rate. `oscillator_runs` makes the
+float64 trajectories of a solver and `bias_statistics` reads all of it off them.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import diffrax
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["energy_bias", "exact_increments", "map_deviation"]
+from ..problems import harmonic_oscillator
+
+__all__ = [
+    "BiasStatistics", "bias_statistics", "energy_bias", "exact_increments", "map_deviation",
+    "oscillator_runs",
+]
 
 _LD = np.longdouble
 
@@ -118,3 +129,55 @@ def map_deviation(trajectories, span, weights, h: float, m: float, k: float
               + dm[0, 0] * dm[1, 1] - dm[0, 1] * dm[1, 0])
     eps = float(np.finfo(np.float64).eps)
     return np.asarray(dm, np.float64) / eps, float(change) / eps
+
+
+def oscillator_runs(solver, steps: int, phases, h: float = 0.5, m: float = 1.0,
+                    k: float = 0.5, amplitude: float = 0.5
+                    ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+    """Float64 runs of `steps` steps of `h` of `solver` on the oscillator `m`, `k`, one from
+    each state of energy `k·amplitude²/2` at the angles `phases` (`q = amplitude·cos φ`,
+    `p = −m ω amplitude·sin φ`), compiled once: the trajectories `(q, p)` (`(steps + 1,)`
+    each) and the histogram of the root finder's updates per step, summed over the runs.
+    A run that fails raises `RuntimeError`."""
+    problem = harmonic_oscillator(m=m, k=k, dtype=jnp.float64)
+    omega = (k / m) ** 0.5
+
+    @jax.jit
+    def run(y0):
+        return diffrax.diffeqsolve(
+            problem.term, solver, 0.0, steps * h, h, y0, args=problem.args, max_steps=steps,
+            saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True), throw=False,
+        )
+
+    trajectories, histogram = [], 0
+    for phase in phases:
+        y0 = (jnp.array([amplitude * np.cos(phase)]),
+              jnp.array([-m * omega * amplitude * np.sin(phase)]))
+        sol = run(y0)
+        if sol.result != diffrax.RESULTS.successful:
+            raise RuntimeError(f"the run from phase {phase} failed: {sol.result}")
+        trajectories.append((np.asarray(sol.ys[0])[:, 0], np.asarray(sol.ys[1])[:, 0]))
+        histogram = histogram + np.asarray(sol.solver_state.histogram)
+    return trajectories, np.asarray(histogram)
+
+
+class BiasStatistics(NamedTuple):
+    """What rounding adds to the energy per step along some trajectories, in units of eps
+    (`bias_statistics`): the `mean` change (the drift rate), its standard error `se`, the
+    `rms` change, and `det_change` of `map_deviation` (which accounts for the mean)."""
+
+    mean: float
+    se: float
+    rms: float
+    det_change: float
+
+
+def bias_statistics(trajectories, span, weights, h: float, m: float, k: float
+                    ) -> BiasStatistics:
+    """`energy_bias` over all steps of `trajectories` (`(q, p)` runs of one step), with its
+    standard error, and `map_deviation`'s determinant change."""
+    changes = np.concatenate([energy_bias(q, p, span, weights, h, m, k)
+                              for q, p in trajectories])
+    _, det_change = map_deviation(trajectories, span, weights, h, m, k)
+    return BiasStatistics(float(np.mean(changes)), float(np.std(changes) / np.sqrt(changes.size)),
+                          float(np.sqrt(np.mean(changes**2))), det_change)
