@@ -4,6 +4,7 @@ TwoSum, and what it buys on long runs with small steps."""
 from fractions import Fraction
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -257,6 +258,28 @@ def test_nudged_span_moves_each_entry_by_at_most_one_ulp():
         assert np.array_equal(b, np.asarray(getattr(nudge_span(span, 3), name)))
     nudged = _bias_solver(options, nudge=3)
     assert np.array_equal(np.asarray(_span(nudged, ctx).gq), np.asarray(moved.gq))
+
+
+def test_nudged_solver_is_cgvi_but_for_its_span():
+    """`benchmarks.roundoff._bias_solver` builds the nudged `CGVI(7)` by hand (`CGVI` takes
+    no formulation): for every `CGVI` row of the bias table it is `CGVI(7)` with the same
+    options, its formulation a `VariableProjection` with the same fields and a seed."""
+    import dataclasses
+
+    from benchmarks.roundoff import _bias_solver, _NudgedProjection, bias_configs
+
+    rows = {name: options for name, options in bias_configs().items()
+            if not options.get("network", False)}
+    assert len(rows) >= 5
+    for name, options in rows.items():
+        plain, nudged = _bias_solver(options), _bias_solver(options, nudge=1)
+        assert isinstance(nudged.formulation, _NudgedProjection), name
+        assert type(plain.formulation) is dvi.VariableProjection, name
+        fields = [f.name for f in dataclasses.fields(dvi.VariableProjection)]
+        assert all(eqx.tree_equal(getattr(plain.formulation, f), getattr(nudged.formulation, f))
+                   for f in fields), name
+        swapped = eqx.tree_at(lambda s: s.formulation, nudged, plain.formulation)
+        assert eqx.tree_equal(swapped, plain), name
 
 
 def test_precision_vocabulary():
