@@ -26,9 +26,9 @@
    default) on the span as computed and on that span with each entry moved by -1, 0 or +1
    ulp at random (one draw per seed; the constant direction kept exact): how the bias
    depends on the span's last bits. With `--updates K ...` as well, Newton's iteration with
-   exactly `K` updates per step and Newton to round-off (ftol 0) instead, then each root
-   finder's mean bias over the spans: whether the number of updates or the stopping rule
-   decides the bias.
+   exactly `K` updates per step and Newton to round-off (ftol 0), returning its last iterate
+   or the one before, instead, then each root finder's mean bias over the spans: whether the
+   number of updates or the stopping rule decides the bias.
 
     taskset -c 1 .venv/bin/python -m benchmarks.roundoff \\
         [--steps N] [--only energy|growth|compensation|cost|bias] [--members M]
@@ -378,6 +378,16 @@ class _FixedUpdates(dvi.RoundoffNewton):
         return state.iterations >= self.updates, optx.RESULTS.successful
 
 
+class _BeforeLastUpdate(dvi.RoundoffNewton):
+    """`RoundoffNewton` run to round-off (`ftol=0`) that returns the iterate before its last
+    update, the one that did not shrink and ended the solve (a study tool)."""
+
+    def _update(self, fn, y, args, options, state):
+        new, state, aux = super()._update(fn, y, args, options, state)
+        kept = jax.tree_util.tree_map(lambda a, b: jnp.where(state.at_floor, a, b), y, new)
+        return kept, state, aux
+
+
 def energy_bias(steps: int, members: int, nudges: list[int] | None = None,
                 updates: list[int] | None = None) -> None:
     """Where the energy drift comes from: along `members` oscillator trajectories of `steps`
@@ -391,7 +401,8 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None,
     `nudges`, `CGVI(7)`'s three Newton steps (ftol 1 with and without `confirm`, ftol 0) and
     its chord iteration to round-off with and without `predict` (with: its default) on the
     span as computed and nudged by each seed (`nudge_span`); given also `updates`, Newton
-    with exactly each number of updates (`_FixedUpdates`) and to round-off (ftol 0) instead.
+    with exactly each number of updates (`_FixedUpdates`) and to round-off (ftol 0), the
+    latter also returning the iterate before its last update (`_BeforeLastUpdate`), instead.
     A run over several spans ends with each root finder's mean bias over the spans."""
     h, m, k = 0.5, 1.0, 0.5
     phases = 2 * np.pi * (np.arange(members) + 0.1234) / members
@@ -411,6 +422,8 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None,
                                                                                 updates=n))
                for n in updates},
             "Newton, ftol 0": configs["Newton, ftol 0"],
+            "Newton, ftol 0, the iterate before its last update": dict(
+                root_finder=_BeforeLastUpdate(ftol=0.0)),
         }
     if nudges is None:
         runs = [(name, options, None) for name, options in configs.items()]

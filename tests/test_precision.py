@@ -165,6 +165,26 @@ def test_oscillator_runs_counts_updates_and_refuses_a_failed_run():
         oscillator_runs(capped, 10, (0.0,))
 
 
+def test_before_last_update_makes_the_same_updates_and_keeps_the_iterate_before():
+    """`benchmarks.roundoff._BeforeLastUpdate`: from the same start, the solve of
+    `RoundoffNewton(ftol=0)` with the same updates, returning the iterate before the last
+    one: within rounding of the last iterate, and not always equal to it."""
+    from benchmarks.roundoff import _BeforeLastUpdate
+    from diffrax_vi.bench.rounding_bias import oscillator_runs
+
+    phases = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
+    runs = {}
+    for name, root_finder in (("last", dvi.RoundoffNewton(ftol=0.0)),
+                              ("before", _BeforeLastUpdate(ftol=0.0))):
+        solver = dvi.CGVI(7, compensated=False, root_finder=root_finder)
+        runs[name] = oscillator_runs(solver, 1, phases)  # one step from each start
+    (last, hist_last), (before, hist_before) = runs["last"], runs["before"]
+    assert np.array_equal(hist_last, hist_before) and hist_last[:3].sum() == 0
+    gaps = [max(abs(a[0][1] - b[0][1]), abs(a[1][1] - b[1][1]))
+            for a, b in zip(last, before, strict=True)]
+    assert 0 < max(gaps) < 1e-15, gaps
+
+
 @pytest.mark.long
 @pytest.mark.parametrize("seed", [None, 1, 2, 3])
 def test_newton_to_round_off_leaves_no_energy_bias_on_nudged_spans(seed):
