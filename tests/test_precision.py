@@ -163,6 +163,8 @@ def test_oscillator_runs_counts_updates_and_refuses_a_failed_run():
     capped = dvi.CGVI(3, root_finder=dvi.RoundoffNewton(ftol=0.0), root_find_max_steps=1)
     with pytest.raises(RuntimeError, match="failed"):
         oscillator_runs(capped, 10, (0.0,))
+    with jax.enable_x64(False), pytest.raises(ValueError, match="jax_enable_x64"):
+        oscillator_runs(solver, 10, (0.0,))
 
 
 def test_before_last_update_makes_the_same_updates_and_keeps_the_iterate_before():

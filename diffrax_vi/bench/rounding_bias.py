@@ -138,7 +138,11 @@ def oscillator_runs(solver, steps: int, phases, h: float = 0.5, m: float = 1.0,
     each state of energy `k·amplitude²/2` at the angles `phases` (`q = amplitude·cos φ`,
     `p = −m ω amplitude·sin φ`), compiled once: the trajectories `(q, p)` (`(steps + 1,)`
     each) and the histogram of the root finder's updates per step, summed over the runs.
-    A run that fails raises `RuntimeError`."""
+    A run that fails raises `RuntimeError`; float64 needs `jax_enable_x64` (else
+    `ValueError`)."""
+    if not jax.config.jax_enable_x64:
+        raise ValueError("oscillator_runs compares float64 runs with the exact map: enable "
+                         "float64 first, jax.config.update('jax_enable_x64', True)")
     problem = harmonic_oscillator(m=m, k=k, dtype=jnp.float64)
     omega = (k / m) ** 0.5
 
