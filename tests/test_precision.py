@@ -209,6 +209,36 @@ def test_newton_to_round_off_leaves_no_energy_bias_on_nudged_spans(seed):
     assert abs(stats.det_change) < 3 * stats.se, stats
 
 
+@pytest.mark.long
+def test_two_updates_leave_a_mean_bias_over_spans_that_newton_to_round_off_does_not():
+    """Over `CGVI(7)`'s span as computed and eleven nudged spans (`benchmarks.roundoff
+    --nudge 1 ... 11 --updates 2`), Newton's iteration with exactly two updates per step
+    (what `confirm` and `predict` make) leaves a mean energy loss beyond three standard
+    errors of the mean over the spans; Newton to round-off (`ftol=0`) leaves a mean within
+    three (benchmarks page, "Two updates, four, or to round-off")."""
+    from benchmarks.roundoff import _bias_solver, _FixedUpdates, _span, bias_configs
+    from diffrax_vi.bench.rounding_bias import bias_statistics, oscillator_runs
+
+    problem = problems.harmonic_oscillator()
+    h, m, k, steps, members = 0.5, 1.0, 0.5, 100_000, 4
+    phases = 2 * np.pi * (np.arange(members) + 0.1234) / members
+    rules = {"two updates": dict(root_finder=_FixedUpdates(ftol=0.0, updates=2)),
+             "to round-off": bias_configs()["Newton, ftol 0"]}
+    means = {}
+    for name, options in rules.items():
+        rows = []
+        for seed in (None, *range(1, 12)):
+            solver = _bias_solver(options, seed)
+            ctx = solver.step_context(problem.term, 0.0, h, problem.y0, problem.args)
+            trajectories, _ = oscillator_runs(solver, steps, phases, h, m, k)
+            rows.append(bias_statistics(trajectories, _span(solver, ctx), ctx.weights, h, m, k))
+        means[name] = (float(np.mean([r.mean for r in rows])),
+                       float(np.sqrt(np.sum([r.se**2 for r in rows])) / len(rows)))
+    (two, se_two), (rounded, se_rounded) = means["two updates"], means["to round-off"]
+    assert two < -3 * se_two, means
+    assert abs(rounded) < 3 * se_rounded, means
+
+
 def test_map_deviation_finds_a_step_that_scales_phase_space():
     """Trajectories of the oscillator's exact map plus a known matrix `D` (tenths of eps),
     rounded to float64 after every step: the fit gives `D` back, and the change of the
