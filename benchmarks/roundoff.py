@@ -369,6 +369,13 @@ class _FixedUpdates(dvi.RoundoffNewton):
 
     updates: int = eqx.field(static=True, default=2)
 
+    def __check_init__(self):
+        if isinstance(self.updates, bool) or not isinstance(self.updates, int) or not (
+            1 <= self.updates <= FIRST_TRY
+        ):
+            raise ValueError(f"updates must be an integer from 1 to {FIRST_TRY} (a solve not "
+                             f"ended after {FIRST_TRY} updates restarts), got {self.updates!r}")
+
     def _update(self, fn, y, args, options, state):
         y, state, aux = super()._update(fn, y, args, options, state)
         done = state.iterations >= self.updates
@@ -381,6 +388,11 @@ class _FixedUpdates(dvi.RoundoffNewton):
 class _BeforeLastUpdate(dvi.RoundoffNewton):
     """`RoundoffNewton` run to round-off (`ftol=0`) that returns the iterate before its last
     update, the one that did not shrink and ended the solve (a study tool)."""
+
+    def __check_init__(self):
+        if self.ftol != 0:
+            raise ValueError(f"_BeforeLastUpdate runs to round-off: ftol must be 0, got "
+                             f"{self.ftol!r}")
 
     def _update(self, fn, y, args, options, state):
         new, state, aux = super()._update(fn, y, args, options, state)
@@ -453,11 +465,17 @@ def energy_bias(steps: int, members: int, nudges: list[int] | None = None,
               "mean / standard error | spans beyond 3 SE |")
         print("|---|---|---|---|---|---|")
         for name, rows in per_finder.items():
-            mean = float(np.mean([r.mean for r in rows]))
-            se = float(np.sqrt(np.sum([r.se**2 for r in rows])) / len(rows))
-            beyond = sum(abs(r.mean) > 3 * r.se for r in rows)
+            mean, se, beyond = over_spans(rows)
             print(f"| {name} | {len(rows)} | {mean:+.2e} | {se:.1e} | {mean / se:+.1f} "
                   f"| {beyond} |", flush=True)
+
+
+def over_spans(rows) -> tuple[float, float, int]:
+    """The mean of several spans' mean biases (`BiasStatistics`), its standard error (from
+    the spans' own, as independent), and how many spans lie beyond 3 of their own."""
+    mean = float(np.mean([r.mean for r in rows]))
+    se = float(np.sqrt(np.sum([r.se**2 for r in rows])) / len(rows))
+    return mean, se, sum(abs(r.mean) > 3 * r.se for r in rows)
 
 
 def _oscillator_step(h: float):
@@ -479,9 +497,11 @@ def main(argv=None) -> None:
     parser.add_argument("--updates", type=int, nargs="+", default=None, metavar="K",
                         help="bias: Newton with exactly K updates per step (and ftol 0)")
     args = parser.parse_args(argv)
-    if args.updates and not all(1 <= n <= FIRST_TRY for n in args.updates):
-        parser.error(f"--updates: each K must be from 1 to {FIRST_TRY} (a solve not ended "
-                     f"after {FIRST_TRY} updates restarts), got {args.updates}")
+    for n in args.updates or ():
+        try:
+            _FixedUpdates(updates=n)
+        except ValueError as error:
+            parser.error(f"--updates: {error}")
     if args.only in (None, "energy"):
         energy_growth(args.steps)
     if args.only in (None, "growth"):

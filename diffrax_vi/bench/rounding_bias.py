@@ -140,6 +140,11 @@ def oscillator_runs(solver, steps: int, phases, h: float = 0.5, m: float = 1.0,
     each) and the histogram of the root finder's updates per step, summed over the runs.
     A run that fails raises `RuntimeError`; float64 needs `jax_enable_x64` (else
     `ValueError`)."""
+    phases = np.atleast_1d(np.asarray(phases, np.float64))
+    if isinstance(steps, bool) or not isinstance(steps, int | np.integer) or steps < 1:
+        raise ValueError(f"steps must be a positive integer, got {steps!r}")
+    if phases.ndim != 1 or phases.size == 0:
+        raise ValueError(f"phases must be a non-empty sequence of angles, got {phases!r}")
     if not jax.config.jax_enable_x64:
         raise ValueError("oscillator_runs compares float64 runs with the exact map: enable "
                          "float64 first, jax.config.update('jax_enable_x64', True)")
@@ -180,6 +185,8 @@ def bias_statistics(trajectories, span, weights, h: float, m: float, k: float
                     ) -> BiasStatistics:
     """`energy_bias` over all steps of `trajectories` (`(q, p)` runs of one step), with its
     standard error, and `map_deviation`'s determinant change."""
+    if len(trajectories) == 0:
+        raise ValueError("bias_statistics needs at least one trajectory, got none")
     changes = np.concatenate([energy_bias(q, p, span, weights, h, m, k)
                               for q, p in trajectories])
     _, det_change = map_deviation(trajectories, span, weights, h, m, k)
