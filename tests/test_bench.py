@@ -649,6 +649,28 @@ def test_root_continuation_script_follows_a_short_root_to_a_longer_step():
         module.main(["pendulum", "tanh", "--start", "2", "--target", "1"])
 
 
+def test_root_continuation_random_starts_find_the_pendulums_one_root_at_dt_10():
+    """benchmarks.root_continuation --random-starts: at h = 10 some of 16 random curves reach
+    the pendulum's root (two thirds of 256 did), all of them the same one, and it is the
+    coarse step's root (0.38 off the motion, as continuation found); `distinct` keeps
+    points apart by more than its tolerance only."""
+    module = benchmark_script("root_continuation")
+    ok, n, residual, q_end, p_end = module.random_starts("pendulum", "tanh", 10.0, 16)
+    assert 4 <= ok.sum() < 16 and np.all(n[ok] <= 1000) and np.all(residual[ok] < 1e-10)
+    roots = module.distinct(np.concatenate([q_end[ok], p_end[ok]], axis=1))
+    assert len(roots) == 1
+    from diffrax_vi.bench.stability import PROBLEMS
+
+    problem = PROBLEMS["pendulum"](dtype=np.float64)
+    q_ref = problem.reference(np.array([problem.t0 + 10.0]))[0][0]
+    scale = 1.0 + float(np.max(np.abs(np.asarray(problem.y0[0]))))
+    assert 0.3 < np.max(np.abs(roots[0][:2] - q_ref)) / scale < 0.5
+    points = np.array([[0.0, 1.0], [0.0, 1.0 + 1e-9], [0.0, 1.0 + 1e-6]])
+    assert len(module.distinct(points)) == 2
+    with pytest.raises(SystemExit):
+        module.main(["pendulum", "tanh", "--random-starts", "-1"])
+
+
 def test_pendulum_constraint_script_measures_p2_and_projects_it():
     """benchmarks.pendulum_constraint: its compiled step loop carries p₂ (nonzero after a
     network step), and the projection sets it to zero after every step."""

@@ -57,6 +57,31 @@ def test_the_cases_see_both_outcomes(serial_rows):
     assert len({r["iterations"] for r in serial_rows}) == 3
 
 
+def test_embedded_workers_keep_their_timers_slow_and_their_profiler_off(cluster):
+    """A worker's timers share its one CPU with the cases: the embedded cluster slows the
+    event loop's tick, the memory and system monitors, and turns the profiler off."""
+    from dask.utils import parse_timedelta
+
+    from diffrax_vi.bench.executor import QUIET_WORKERS
+
+    def timers(dask_worker):
+        import dask
+
+        return ({name: pc.callback_time for name, pc in dask_worker.periodic_callbacks.items()},
+                dask.config.get("distributed.worker.profile.enabled"))
+
+    ms = {key: 1000 * parse_timedelta(value) for key, value in QUIET_WORKERS.items()
+          if isinstance(value, str)}
+    per_worker = cluster.client.run(timers)
+    assert len(per_worker) == 2
+    for callbacks, profiling in per_worker.values():
+        assert profiling is False
+        assert callbacks["tick"] == ms["distributed.admin.tick.interval"] >= 1000
+        assert callbacks["monitor"] == ms["distributed.admin.system-monitor.interval"] >= 10_000
+        assert callbacks["memory_monitor"] == ms["distributed.worker.memory.monitor-interval"]
+        assert "profile" not in callbacks
+
+
 def test_local_cluster_sweep_matches_the_serial_run(cluster, serial_rows, tmp_path):
     assert cluster.workers == 2
     log = tmp_path / "stability.jsonl"

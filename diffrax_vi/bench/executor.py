@@ -252,6 +252,20 @@ def _import_distributed():
     return distributed
 
 
+# Settings of the embedded cluster. A worker's event loop shares its one CPU with the
+# computation, so what it does on a timer is taken from the cases: with Dask's defaults
+# (profiler samples every 10 ms, the loop's tick every 20 ms, the nanny's memory check every
+# 100 ms, system metrics every 500 ms) the cases ran measurably slower on a pinned worker
+# than in a pinned process (the benchmarks page, "Sweeps on a Dask cluster"). The profiler
+# and the metrics feed a dashboard this cluster does not have.
+QUIET_WORKERS = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "10s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+
+
 class DaskExecutor:
     """The batches as tasks on a Dask cluster.
 
@@ -293,9 +307,7 @@ class DaskExecutor:
                     else (os.cpu_count() or 1)
             import dask
 
-            # The workers' statistical profiler samples the busy thread's deep JAX stacks,
-            # which costs CPU on every compilation, for a dashboard this cluster does not have.
-            with dask.config.set({"distributed.worker.profile.enabled": False}):
+            with dask.config.set(QUIET_WORKERS):
                 self._cluster = distributed.LocalCluster(
                     n_workers=workers, threads_per_worker=1, processes=True,
                     dashboard_address=None, silence_logs=40, timeout=timeout,
