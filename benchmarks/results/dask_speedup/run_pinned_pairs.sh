@@ -1,19 +1,26 @@
 #!/bin/bash
 # REPEATS interleaved pairs of the quick stability sweep: one process pinned to one core
-# (taskset -c 0, --jobs 1), then the embedded two-worker cluster (--jobs 2, one pinned worker
-# per core). Wall and CPU time of each command; then the ratio of each pair, their median,
-# and the tables compared case by case with the first serial run.
+# (taskset -c $SERIAL_CPUS, default 0; SERIAL_CPUS= leaves it unpinned; --jobs 1), then the
+# embedded two-worker cluster (--jobs 2, one pinned worker per core). PROBLEMS=... runs a
+# subset of the problems. Wall and CPU time of each command; then the ratio of each pair,
+# their median, and the tables compared case by case with the first serial run.
 # Run from the repository root on a quiet machine:
 #   OUT=/tmp/dask_pairs bash benchmarks/results/dask_speedup/run_pinned_pairs.sh 3
 set -e
 repeats=${1:-3}
 out=${OUT:-/tmp/dask_pairs}
+serial_cpus=${SERIAL_CPUS-0}
+problems=${PROBLEMS:+--problems $PROBLEMS}
 mkdir -p "$out"
 for i in $(seq "$repeats"); do
   for mode in serial cluster; do
-    if [ "$mode" = cluster ]; then cmd=(.venv/bin/python); jobs=2; else cmd=(taskset -c 0 .venv/bin/python); jobs=1; fi
+    cmd=(.venv/bin/python); jobs=2
+    if [ "$mode" = serial ]; then
+      jobs=1; [ -n "$serial_cpus" ] && cmd=(taskset -c "$serial_cpus" .venv/bin/python)
+    fi
     /usr/bin/time -o "$out/$mode$i.time" -f "%e %U %S" "${cmd[@]}" -m diffrax_vi.bench \
-      stability --quick --jobs "$jobs" --no-progress --out "$out/$mode$i" > "$out/$mode$i.log" 2>&1
+      stability --quick $problems --jobs "$jobs" --no-progress --out "$out/$mode$i" \
+      > "$out/$mode$i.log" 2>&1
     read wall user sys < "$out/$mode$i.time"
     echo "$mode run $i: $wall s wall, $(echo "$user + $sys" | bc) s CPU (load average: $(cut -d' ' -f1-3 /proc/loadavg))"
   done
