@@ -167,7 +167,7 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0, help="of the random starts")
     args = parser.parse_args(argv)
     if args.random_starts < 0:
-        parser.error(f"--random-starts must be positive, got {args.random_starts}")
+        parser.error(f"--random-starts must not be negative, got {args.random_starts}")
     if not 0 < args.start < args.target:
         parser.error(f"need 0 < start < target, got {args.start} and {args.target}")
     shown = sys.argv[1:] if argv is None else argv
