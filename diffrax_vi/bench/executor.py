@@ -36,6 +36,7 @@ __all__ = [
     "SweepIncomplete",
     "run_sweep",
     "cpu_slots",
+    "QUIET_WORKERS",
 ]
 
 Rows = list[dict[str, Any]]
@@ -273,7 +274,8 @@ class DaskExecutor:
 
     - `scheduler`: the address of a running scheduler (`"tcp://host:8786"`), or a
       `distributed.Client` already connected; `None` (default) starts an embedded
-      `LocalCluster` that lives as long as this executor.
+      `LocalCluster` that lives as long as this executor, its workers configured with
+      `QUIET_WORKERS` (slow timers, no profiler).
     - `workers`: worker processes of the embedded cluster (default: one per CPU this
       process may use). Each has one thread and, where the machine has a CPU for each, its
       own CPUs.
