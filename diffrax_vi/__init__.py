@@ -9,6 +9,7 @@ from . import oga as oga
 from . import problems as problems
 from .activations import elu as elu
 from .activations import gelu as gelu
+from .activations import gelu_exact as gelu_exact
 from .activations import relu_k as relu_k
 from .activations import sigmoid as sigmoid
 from .activations import sin as sin
@@ -20,6 +21,7 @@ from .ansatz import ShallowNetBasis as ShallowNetBasis
 from .ensemble import ensemble as ensemble
 from .ensemble import ensemble_gather as ensemble_gather
 from .ensemble import ensemble_mesh as ensemble_mesh
+from .fallback import AllParameterFallbackWarning as AllParameterFallbackWarning
 from .fixed_point import FixedPointIteration as FixedPointIteration
 from .formulation import AbstractFormulation as AbstractFormulation
 from .formulation import FreeEndpoints as FreeEndpoints

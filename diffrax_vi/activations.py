@@ -8,6 +8,7 @@ parametrised ones are small frozen dataclasses rather than closures.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 
 import jax
@@ -18,11 +19,13 @@ __all__ = [
     "sigmoid",
     "sin",
     "gelu",
+    "gelu_exact",
     "elu",
     "relu_k",
     "ReLUk",
     "check_activation",
     "activation_name",
+    "package_activation",
 ]
 
 
@@ -44,6 +47,12 @@ def sin(x):
 def gelu(x):
     """Gaussian error linear unit, tanh approximation (as in the reference's benchmarks)."""
     return jax.nn.gelu(x, approximate=True)
+
+
+def gelu_exact(x):
+    """Gaussian error linear unit, exact form `x Φ(x)` with the error function (as
+    `jax.nn.gelu(approximate=False)`)."""
+    return jax.nn.gelu(x, approximate=False)
 
 
 def elu(x):
@@ -75,6 +84,49 @@ class ReLUk:
 def relu_k(k: int) -> ReLUk:
     """The rectified power unit `max(0, x)^k` (the reference's `relu_k`)."""
     return ReLUk(k)
+
+
+def _jax_activations() -> tuple[tuple[Callable, Callable], ...]:
+    """JAX's functions that compute one of this module's activations, and that activation.
+    Each JAX function is exactly what the package's one evaluates (`jax.nn.tanh` is
+    `jnp.tanh`, `jax.nn.sigmoid` is `lax.logistic`), so recognising it changes no value."""
+    return (
+        (jnp.tanh, tanh),
+        (jax.nn.tanh, tanh),
+        (jax.lax.tanh, tanh),
+        (jax.nn.sigmoid, sigmoid),
+        (jax.lax.logistic, sigmoid),
+        (jnp.sin, sin),
+        (jax.lax.sin, sin),
+        (jax.nn.gelu, gelu),  # approximate=True is jax.nn.gelu's default
+        (jax.nn.elu, elu),  # alpha=1.0, its default
+        (jax.nn.relu, ReLUk(1)),
+    )
+
+
+def package_activation(activation: Callable) -> Callable:
+    """This module's activation that `activation` is, else `activation` itself.
+
+    Recognises JAX's own functions by identity: `jnp.tanh`, `jax.nn.tanh` and `lax.tanh` are
+    `tanh`; `jax.nn.sigmoid` and `lax.logistic` are `sigmoid`; `jnp.sin` and `lax.sin` are
+    `sin`; `jax.nn.gelu` is `gelu` (its default `approximate=True`) and
+    `functools.partial(jax.nn.gelu, approximate=False)` is `gelu_exact`; `jax.nn.elu` is `elu`;
+    `jax.nn.relu` is `relu_k(1)`. `ShallowNetBasis` applies it to its activation, so that the
+    solver's defaults (which step a network gets) are the same whichever name a user writes.
+    Any other function (a lambda, a composition, a power of `jax.nn.relu`) is returned as it
+    is: it cannot be compared with a package activation without evaluating it.
+    """
+    if isinstance(activation, functools.partial):
+        if activation.func is jax.nn.gelu and not activation.args:
+            keywords = activation.keywords or {}
+            approximate = keywords.get("approximate", True)
+            if set(keywords) <= {"approximate"} and isinstance(approximate, bool):
+                return gelu if approximate else gelu_exact
+        return activation
+    for jax_function, ours in _jax_activations():
+        if activation is jax_function:
+            return ours
+    return activation
 
 
 def activation_name(activation: Callable) -> str:

@@ -44,7 +44,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from .activations import ReLUk, gelu, sigmoid, tanh
+from .activations import ReLUk, gelu, gelu_exact, sigmoid, tanh
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .degenerate import first_order_end_correction
@@ -261,10 +261,11 @@ class UniformLayer(AbstractHiddenLayer):
     @staticmethod
     def suits(activation) -> bool:
         """Whether the layer's features span a rich enough space on a step for `activation`
-        (`tanh`, `sigmoid`, `gelu`, `relu_k` with `k >= 2`)."""
+        (`tanh`, `sigmoid`, `gelu`, `gelu_exact`, `relu_k` with `k >= 2`; JAX's own names
+        for them are recognised by `ShallowNetBasis`, not here)."""
         if isinstance(activation, ReLUk):
             return activation.k >= 2
-        return activation in (tanh, sigmoid, gelu)
+        return activation in (tanh, sigmoid, gelu, gelu_exact)
 
     def parameters(self, basis: ShallowNetBasis, dim: int, dtype) -> Array:
         """The network parameters `(α = 0, w, β)`, each `(S, D)`."""

@@ -20,6 +20,7 @@ from .degenerate import (
     CONSTRAINT_TOLERANCE,
     end_on_constraint,
 )
+from .fallback import warn_all_parameter_fallback
 from .formulation import (
     AbstractFormulation,
     FreeEndpoints,
@@ -69,7 +70,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       `VariableProjection()` for a `ShallowNetBasis` without mirrored pairs whose activation
       `UniformLayer` suits, unless an option of the all-parameter step is given (a damped root
       finder, or a `seed` with `reuse_neurons`, `PreviousStep()` or an `initial_guess` other
-      than the default); otherwise `FreeEndpoints()`.
+      than the default); otherwise `FreeEndpoints()`, with an `AllParameterFallbackWarning`
+      (once per activation) where a network's activation alone rules the projection out.
     - `seed`: where each step's solve starts, a `SeedPolicy` (its trajectory estimate, the fit
       of seed parameters to it, refits of the previous step's neurons). Default
       `SeedPolicy()`.
@@ -134,7 +136,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """`VariableProjection()` where the ansatz and the other options allow it, else
         `FreeEndpoints()`: the projection's fixed layer needs a shallow network of an
         activation it suits; a damped root finder, `reuse_neurons`, `PreviousStep()` and a
-        chosen `initial_guess` belong to the all-parameter step."""
+        chosen `initial_guess` belong to the all-parameter step. A network left without the
+        projection by its activation alone warns (`AllParameterFallbackWarning`)."""
         projectable = (
             isinstance(self.basis, ShallowNetBasis)
             and not self.basis.mirrored
@@ -147,6 +150,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
         if projectable and not all_parameter_options:
             return VariableProjection()
+        if isinstance(self.basis, ShallowNetBasis) and not self.basis.mirrored:
+            if not all_parameter_options:  # the activation alone rules the projection out
+                warn_all_parameter_fallback(self.basis)
         return FreeEndpoints()
 
     @property

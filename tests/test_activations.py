@@ -14,7 +14,9 @@ F64 = jnp.float64
 
 # -- 2. activations --------------------------------------------------------------------------
 
-ACTIVATIONS = [dvi.tanh, dvi.sigmoid, dvi.sin, dvi.gelu, dvi.elu, dvi.relu_k(1), dvi.relu_k(3)]
+ACTIVATIONS = [
+    dvi.tanh, dvi.sigmoid, dvi.sin, dvi.gelu, dvi.gelu_exact, dvi.elu, dvi.relu_k(1), dvi.relu_k(3)
+]
 
 
 @pytest.mark.parametrize("activation", ACTIVATIONS, ids=activation_name)

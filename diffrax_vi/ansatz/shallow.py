@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..activations import activation_name, check_activation
+from ..activations import activation_name, check_activation, package_activation
 from .base import AbstractBasis
 from .symmetry import AbstractSymmetry, MirrorPairs, NoSymmetry, SharedMirrorPairs, mirror
 
@@ -127,7 +127,15 @@ class ShallowNetBasis(AbstractBasis):
 
     - `activation`: elementwise `σ`, e.g. `diffrax_vi.tanh` or `diffrax_vi.relu_k(3)`. It must
       be smooth enough for Newton (the Jacobian differentiates it three times) and keep the
-      dtype of its input.
+      dtype of its input. JAX's own functions become the package's activation they compute
+      (`diffrax_vi.activations.package_activation`): `jnp.tanh` and `jax.nn.tanh` are `tanh`,
+      `jax.nn.sigmoid` is `sigmoid`, `jax.nn.gelu` is `gelu` and
+      `functools.partial(jax.nn.gelu, approximate=False)` is `gelu_exact`, `jnp.sin` is `sin`,
+      `jax.nn.elu` is `elu`, `jax.nn.relu` is `relu_k(1)`; so the basis, its repr and the
+      solver's default step are the same whichever name is written. `tanh`, `sigmoid`,
+      `gelu`, `gelu_exact` and `relu_k(k)` with `k >= 2` get the projected step
+      (`VariableProjection`) by default; any other activation the all-parameter step, with an
+      `AllParameterFallbackWarning` unless the formulation is chosen.
     - `width`: number of neurons `S` per coordinate (even with a mirrored symmetry).
     - `symmetry`: `NoSymmetry()` (default), `MirrorPairs()` or `SharedMirrorPairs()`.
     - `derivatives`: `"autodiff"` (default: JAX differentiates the network) or `"sympy"`: the
@@ -137,7 +145,7 @@ class ShallowNetBasis(AbstractBasis):
       Both give the same solution.
     """
 
-    activation: Callable = eqx.field(static=True)
+    activation: Callable = eqx.field(static=True, converter=package_activation)
     width: int = eqx.field(static=True)
     symmetry: AbstractSymmetry = eqx.field(static=True, default=NoSymmetry())
     derivatives: str = eqx.field(static=True, default="autodiff")

@@ -331,11 +331,16 @@ def _gelu_tanh(x):
     return x / 2 * (1 + sympy.tanh(inner))
 
 
+def _gelu_erf(x):
+    return x / 2 * (1 + sympy.erf(x / sympy.sqrt(2)))
+
+
 _SYMPY_ACTIVATIONS: dict[Any, Callable[[sympy.Symbol], sympy.Expr]] = {
     _act.tanh: sympy.tanh,
     _act.sigmoid: lambda x: 1 / (1 + sympy.exp(-x)),
     _act.sin: sympy.sin,
     _act.gelu: _gelu_tanh,
+    _act.gelu_exact: _gelu_erf,
     _act.elu: lambda x: sympy.Piecewise((x, x > 0), (expm1(x), True)),
     jnp.tanh: sympy.tanh,
     jnp.sin: sympy.sin,
@@ -347,9 +352,9 @@ def sympy_activation(activation: Callable) -> sympy.Lambda:
     """The sympy form `x ↦ σ(x)` of an activation of `diffrax_vi.activations`.
 
     Knows `tanh`, `sigmoid`, `sin`, `gelu` (tanh approximation, as
-    `jax.nn.gelu(approximate=True)`), `elu` and `relu_k(k)` (a `Piecewise`, so its derivatives
-    are exact piecewise polynomials). Any other activation may provide a method
-    `sympy_form(x)` returning its expression in the sympy symbol `x`.
+    `jax.nn.gelu(approximate=True)`), `gelu_exact` (with `erf`), `elu` and `relu_k(k)` (a
+    `Piecewise`, so its derivatives are exact piecewise polynomials). Any other activation may
+    provide a method `sympy_form(x)` returning its expression in the sympy symbol `x`.
 
     Raises `ValueError` for an activation with no known sympy form.
     """
@@ -367,8 +372,9 @@ def sympy_activation(activation: Callable) -> sympy.Lambda:
         if form is None:
             raise ValueError(
                 f"no sympy form is known for the activation {_act.activation_name(activation)}; "
-                "sympy derivatives support tanh, sigmoid, sin, gelu, elu and relu_k(k) (or an "
-                "activation with a `sympy_form(x)` method). Use derivatives='autodiff' instead."
+                "sympy derivatives support tanh, sigmoid, sin, gelu, gelu_exact, elu and "
+                "relu_k(k) (or an activation with a `sympy_form(x)` method). Use "
+                "derivatives='autodiff' instead."
             )
         expr = form(x)
     return sympy.Lambda(x, expr)
