@@ -7,6 +7,8 @@ A benchmark entry says how to run one solver:
 - `Adaptive(name, solver)`: a diffrax solver with `PIDController(rtol, atol = atol_ratio·rtol)`;
   the sweep parameter is `rtol`.
 - `SciPy(name, method)`: `scipy.integrate.solve_ivp` (e.g. `"DOP853"`); sweep parameter `rtol`.
+- `Heyoka(name)`: heyoka's Taylor integrator (the optional `peers` extra, see `bench.peers`);
+  sweep parameter heyoka's `tol` (relative and absolute), under the name `rtol`.
 
 All runs of one entry on one problem share one compilation: the end time, the step size and the
 tolerances are traced arguments of a single `eqx.filter_jit`-ed `diffeqsolve`. Every run is
@@ -37,6 +39,7 @@ __all__ = [
     "Fixed",
     "Adaptive",
     "SciPy",
+    "Heyoka",
     "Entry",
     "work_precision",
     "long_time_energy",
@@ -111,7 +114,26 @@ class SciPy:
     parameter = "rtol"
 
 
-Entry = Fixed | Adaptive | SciPy
+@dataclasses.dataclass(frozen=True)
+class Heyoka:
+    """heyoka's adaptive Taylor integrator (sweep: its `tol`, passed as the `rtols`).
+
+    Optional: it needs heyoka (`pip install "diffrax_vi[peers]"`); a run without it is a row
+    with status `error:ImportError`. Hamilton's equations come from the problem's Hamiltonian
+    (`bench.peers.heyoka_system`); one integrator is built per (problem, tol), its build
+    (LLVM compilation, without heyoka's caches) in `compile_s`. The energy error is read at
+    the step ends of one more, untimed, run.
+    """
+
+    name: str = "heyoka"
+    compact_mode: bool = False
+    high_accuracy: bool = False
+    family: str = "peer"
+    kind = "heyoka"
+    parameter = "rtol"
+
+
+Entry = Fixed | Adaptive | SciPy | Heyoka
 
 
 class NotSeparable(ValueError):
@@ -321,9 +343,10 @@ def _values_for(entry: Entry, values: Sequence[float] | Mapping[str, Sequence[fl
 def _check_run(entry: Any, value: Any) -> None:
     """Refuse a solver entry that is not `Fixed`/`Adaptive`/`SciPy`, or a sweep value that is
     not a positive number (step count for `Fixed`, rtol otherwise), naming the culprit."""
-    if not isinstance(entry, Fixed | Adaptive | SciPy):
+    if not isinstance(entry, Fixed | Adaptive | SciPy | Heyoka):
         raise TypeError(
-            f"solver entries must be Fixed, Adaptive or SciPy, got {type(entry).__name__}"
+            "solver entries must be Fixed, Adaptive or SciPy (or Heyoka), got "
+            f"{type(entry).__name__}"
         )
     kind = "step count" if isinstance(entry, Fixed) else "rtol"
     if not (isinstance(value, int | float | np.integer | np.floating) and value > 0
@@ -359,10 +382,11 @@ def work_precision(
     **Arguments:**
 
     - `problem`: the `Problem`; its `t0`, `t1` and `y0` (dtype included) set the run.
-    - `solvers`: `Fixed`, `Adaptive` and `SciPy` entries.
+    - `solvers`: `Fixed`, `Adaptive`, `SciPy` and `Heyoka` entries.
     - `steps`: step counts over the span for the `Fixed` entries (one list, or a mapping from
       entry name to its own list).
-    - `rtols`: relative tolerances for `Adaptive` and `SciPy` entries (same forms).
+    - `rtols`: relative tolerances for `Adaptive` and `SciPy` entries, heyoka's `tol` for
+      `Heyoka` entries (same forms).
     - `repeats`, `budget_s`: timing repeats after the compiling call, and the time after which
       an entry stops repeating a point.
     - `adaptive_max_steps`: step budget of the adaptive runs.
@@ -398,6 +422,11 @@ def work_precision(
                     ts, q, p = res.t, res.y[:d].T, res.y[d:].T
                     row.update(status=classify(res), steps=len(res.t) - 1, rejected=None,
                                wall_s=wall, compile_s=0.0, repeats=n, nfev=res.nfev)
+                elif isinstance(entry, Heyoka):
+                    from .peers import heyoka_run
+
+                    ts, q, p, fields = heyoka_run(problem, entry, t1, value, repeats, budget_s)
+                    row.update(fields)
                 else:
                     max_steps = (
                         entry.step_budget(int(max(sweep))) if isinstance(entry, Fixed)

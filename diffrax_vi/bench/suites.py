@@ -21,7 +21,8 @@ from ..quadrature import GaussLegendre
 from ..seeding.policy import SeedPolicy
 from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep
 from ..solver import NetworkVI
-from .harness import Adaptive, Entry, Fixed, SciPy
+from .harness import Adaptive, Entry, Fixed, Heyoka, SciPy
+from .peers import heyoka_available
 
 __all__ = ["Setting", "SETTINGS", "PEERS_ADAPTIVE", "networkvi_entries", "energy_entries",
            "peer_entries"]
@@ -78,6 +79,9 @@ SETTINGS: dict[str, Setting] = {
 QUICK_RTOLS = (1e-4, 1e-6, 1e-8, 1e-10, 1e-12)
 FULL_RTOLS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12, 1e-13)
 PEERS_ADAPTIVE = ("Tsit5", "Dopri8")
+# heyoka's tolerances (it reaches round-off, so the grid goes further than the others').
+QUICK_HEYOKA_TOLS = (1e-6, 1e-9, 1e-12, 1e-15)
+FULL_HEYOKA_TOLS = (1e-4, 1e-6, 1e-8, 1e-10, 1e-12, 1e-13, 1e-14, 1e-15, 1e-16)
 
 
 def networkvi_entries(setting: Setting, full: bool) -> list[Fixed]:
@@ -138,7 +142,8 @@ def energy_entries(setting: Setting) -> list[Fixed]:
 
 def peer_entries(full: bool) -> list[Entry]:
     """The peers: diffrax Tsit5, Dopri8, Kvaerno5 (PID), SemiImplicitEuler (separable problems
-    only), scipy DOP853, and our polynomial CGVI (degree 7 on Gauss–Legendre(8), order 14)."""
+    only), scipy DOP853, heyoka's Taylor integrator where heyoka is installed (the `peers`
+    extra), and our polynomial CGVI (degree 7 on Gauss–Legendre(8), order 14)."""
     out: list[Entry] = [
         Adaptive("Tsit5", diffrax.Tsit5()),
         Adaptive("Dopri8", diffrax.Dopri8()),
@@ -147,6 +152,8 @@ def peer_entries(full: bool) -> list[Entry]:
         SciPy("scipy DOP853", "DOP853"),
         Fixed("CGVI(7)", CGVI(7, GaussLegendre(8))),
     ]
+    if heyoka_available():
+        out.insert(5, Heyoka("heyoka"))
     if full:
         out.append(Fixed("CGVI(4)", CGVI(4)))
     return out
@@ -162,6 +169,8 @@ def sweeps(name: str, entries: Sequence[Entry], full: bool) -> tuple[dict, dict]
             if full and not e.separable:
                 base = tuple(sorted({*base, *(2 * s for s in base), max(base) * 4}))
             steps[e.name] = base
+        elif isinstance(e, Heyoka):
+            rtols[e.name] = FULL_HEYOKA_TOLS if full else QUICK_HEYOKA_TOLS
         else:
             rtols[e.name] = FULL_RTOLS if full else QUICK_RTOLS
     return steps, rtols
