@@ -142,6 +142,11 @@ class FixedPointIteration(RoundoffNewton):
       rounding units of the unknowns is rounding noise, whose ratio to the update before
       says nothing of the rate: there the ratio before it is the rate, and the noise's size
       the update. Never after the first update. Default `False`.
+    - `picard`: where the projected step's Lagrangian has a constant kinetic matrix
+      `∂²L/∂v²` and its span is known when the step is traced (`CGVI`, a network's fixed
+      layer), iterate the forces at the nodes directly instead (`diffrax_vi.picard`: no
+      Jacobian at all), and take the iteration above only where that does not converge.
+      Default `True`.
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 
@@ -157,11 +162,12 @@ class FixedPointIteration(RoundoffNewton):
     inverse: bool = eqx.field(static=True, default=True)
     matrix: str = eqx.field(static=True, default="jacobian")
     predict: bool = eqx.field(static=True, default=False)
+    picard: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if self.matrix not in ("jacobian", "kinetic"):
             raise ValueError(f"matrix must be 'jacobian' or 'kinetic', got {self.matrix!r}")
-        for name in ("inverse", "predict"):
+        for name in ("inverse", "predict", "picard"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.refresh is not None and not (

@@ -29,16 +29,25 @@ from .formulation import (
     stage_values,
 )
 from .interpolation import NetworkInterpolation
+from .lazy import unless_all_skip
 from .nonlinear import LevenbergMarquardt
+from .picard import (
+    extrapolation,
+    kinetic_structure,
+    picard_plan,
+    picard_solve,
+    start_at_rest,
+    step_residual,
+)
 from .precision import compensated_add
 from .projection import RoundoffNewton, UniformLayer, VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport
-from .seeding.policy import Seeder, SeedPolicy
+from .seeding.policy import Seed, Seeder, SeedPolicy
 from .seeding.policy import residual_scale as _residual_scale
 from .solver_options import check_options
 from .solver_state import NetworkVIState
-from .step_solve import companion_error, solve_all, solve_projected
+from .step_solve import companion_error, solve_all, solve_projected, with_known_span
 from .terms import AbstractMechanicalTerm, unwrap_term
 
 __all__ = ["NetworkVI", "NetworkVIState"]
@@ -227,6 +236,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             ),
             first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
             compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
+            node_values=(jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2,
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -245,6 +255,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """Seed -> solve -> accept."""
         ctx = self.step_context(terms, t0, t1, y0, args)
         state = solver_state
+        engine = self._picard_engine(ctx)
+        if engine is not None:
+            return self._picard_step(ctx, state, made_jump, *engine)
         seeding = self.seeder
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
@@ -288,9 +301,122 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             compensation, violation, forces,
         )
 
+    def _picard_engine(self, ctx):
+        """`(plan, structure, span)` of the Jacobian-free iteration (`diffrax_vi.picard`)
+        where this step can take it: the projected step on a span known when the step is
+        traced and the same in every coordinate (a linear ansatz, a fixed hidden layer), a
+        root finder that allows it (`FixedPointIteration(picard=True)`), and a Lagrangian
+        whose kinetic matrix is constant. Decided when the step is traced; else `None`."""
+        if not (isinstance(self.formulation, VariableProjection)
+                and isinstance(self.formulation.hidden, UniformLayer)
+                and getattr(self.root_finder, "picard", False)):
+            return None
+        dim, dtype = ctx.q0.shape[0], ctx.q0.dtype
+        with jax.ensure_compile_time_eval():
+            if isinstance(ctx.basis, ShallowNetBasis):
+                hidden = self.formulation.hidden.parameters(ctx.basis, dim, dtype)
+            else:
+                hidden = ctx.basis.zeros(dim, dtype)
+        span = self.formulation.span(hidden, ctx)
+        plan = picard_plan(span, ctx.weights)
+        if plan is None:
+            return None
+        structure = kinetic_structure(ctx.term, ctx.t, ctx.q0, ctx.args)
+        if structure is None or not structure.mass_constant:
+            return None
+        if structure.mass is not None and not _invertible(structure.mass):
+            return None
+        return plan, structure, span
+
+    def _picard_step(self, ctx, state, made_jump, plan, structure, span):
+        """The projected step by the Jacobian-free iteration, started from the previous
+        step's node values continued (`picard.extrapolation`); where it does not converge,
+        the root finder's own solve from the seed policy's start."""
+        form = self.formulation
+        seeding = self.seeder
+        record = seeding.after_jump(state.seed, made_jump)
+        fresh = record.fresh if made_jump is False else record.fresh | made_jump
+        nodes = self.quadrature.nodes_weights_np()[0]
+        ratio = ctx.h / record.h_prev
+        rest = start_at_rest(structure, ctx)
+        f_prev, g_prev = state.node_values
+        f_start = jnp.where(fresh, rest[0], extrapolation(nodes, ratio, f_prev))
+        if structure.offset_moves:
+            g_start = jnp.where(fresh, rest[1], extrapolation(nodes, ratio, g_prev))
+        else:
+            g_start = rest[1]  # constant offsets: those at rest
+        dtype = ctx.q0.dtype
+        eps = float(jnp.finfo(dtype).eps)
+        tolerance = (self.root_finder.ftol * eps * _residual_scale(ctx)).astype(dtype)
+        known = with_known_span(span)((ctx, span, None))
+
+        def residual(z):
+            return form.reduced_residual(z, known)
+
+        def solve(ctx, f_start, g_start, state, record):
+            def residual_and_forces(z):
+                return step_residual(plan, ctx, z)
+
+            picard = picard_solve(plan, structure, ctx, span, (f_start, g_start),
+                                  residual_and_forces)
+            done = (picard.unknowns, (picard.values, picard.iterations,
+                    diffrax.RESULTS.successful, picard.residual, jnp.array(False)))
+
+            def fallback():
+                seed = seeding.seed(ctx, record, made_jump, state.report.residual,
+                                    state.last_iterations)
+                solved = solve_projected(
+                    self, ctx, *seed.start, restart_history=seed.restart_history
+                )
+                g = g_start
+                if structure.offset_moves:
+                    q, dq = form.node_values(solved.unknowns[0], span, ctx.q0)
+                    p, _ = node_momenta_and_forces(ctx, q, dq)
+                    mass = jax.hessian(lambda v: ctx.term(ctx.t, ctx.q0, v, ctx.args))(
+                        jnp.zeros_like(ctx.q0))
+                    g = p - (dq / ctx.h) @ mass
+                return (solved.unknowns, ((solved.forces, g.astype(ctx.p0.dtype)),
+                        solved.iterations + picard.iterations, solved.result,
+                        solved.residual, jnp.array(True)))
+
+            return unless_all_skip(~picard.converged, fallback, done)
+
+        # The iteration runs on values without derivatives (the root's come below): nothing of
+        # it is differentiated or kept for a derivative.
+        frozen = jax.tree_util.tree_map(
+            lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x,
+            (ctx, f_start, g_start, state, record),
+        )
+        found, (values, n, result, residual_size, restarted) = solve(*frozen)
+        # The step's derivatives are those of its root (implicit differentiation of the
+        # step's equations), not of the iteration that found it.
+        z = jax.lax.custom_root(residual, found, lambda _, __: found, _dense_tangent_solve)
+        residual = residual_size
+        theta = form.expand(form.coefficients(z[0], ctx), span)
+        dq, dp = form.projected_increments(z, span, ctx)
+        if self.compensated:
+            (q1, eq), (p1, ep) = (
+                compensated_add(x, d, e)
+                for x, d, e in zip((ctx.q0, ctx.p0), (dq, dp), state.compensation, strict=True)
+            )
+            compensation = (eq, ep)
+        else:
+            q1, p1 = ctx.q0 + dq, ctx.p0 + dp
+            compensation = state.compensation
+        violation = jnp.zeros((), dtype)  # a constant, invertible kinetic matrix: regular
+        if structure.mass is None:
+            moved, violation = end_on_constraint(ctx, q1, p1)
+            compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
+            q1 = moved
+        seed = Seed(None, ~fresh, jnp.array(False))
+        return self._finish_step(
+            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
+            compensation, violation, values[0], node_values=values,
+        )
+
     def _finish_step(
         self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-        compensation, violation, forces=None,
+        compensation, violation, forces=None, node_values=None,
     ):
         """Failure results, dense output, the new solver state (the seed policy's record
         accepts the step). `violation` is the end state's distance from the primary
@@ -382,6 +508,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             compensation=jax.tree_util.tree_map(
                 lambda e: jnp.where(failed, jnp.zeros_like(e), e), compensation
             ),
+            node_values=state.node_values if node_values is None else node_values,
         )
         y_error = None
         if self.error_estimate is not None:
@@ -408,6 +535,24 @@ def _interpolation_factory(
     return functools.partial(
         NetworkInterpolation, basis=basis, formulation=formulation, nodes=nodes
     )
+
+
+def _dense_tangent_solve(linear, rhs):
+    """`x` with `linear(x) = rhs`, by a dense factorisation of the linear map (the step's
+    Jacobian at its root; formed only where a derivative is taken)."""
+    from jax.flatten_util import ravel_pytree
+
+    flat, unravel = ravel_pytree(rhs)
+    matrix = jax.jacfwd(lambda v: ravel_pytree(linear(unravel(v)))[0])(jnp.zeros_like(flat))
+    return unravel(jnp.linalg.solve(matrix, flat))
+
+
+def _invertible(matrix) -> bool:
+    """Whether a kinetic matrix known when the step is traced is invertible (well within
+    float64: a regular Lagrangian)."""
+    import numpy as np
+
+    return bool(np.linalg.cond(matrix) < 1e12)
 
 
 def _check_state(y0: Any) -> tuple[Array, Array]:

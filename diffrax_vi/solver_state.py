@@ -43,6 +43,9 @@ class NetworkVIState(eqx.Module):
     - `compensation`: `(e_q, e_p)`, the rounding left over from adding the last step's
       increments to `q` and `p` (compensated summation, `NetworkVI.compensated`): the
       state is `y + compensation` to about twice the working precision. Zeros when off.
+    - `node_values`: `(F, G)`, each `(R, D)`: the forces and the momentum's offsets at the
+      nodes of the last accepted step, from which the Jacobian-free iteration
+      (`diffrax_vi.picard`) starts the next; zeros where that iteration is not used.
     """
 
     seed: SeedRecord
@@ -58,6 +61,7 @@ class NetworkVIState(eqx.Module):
     report: StepReport
     first_constraint: Array
     compensation: tuple[Array, Array]
+    node_values: tuple[Array, Array]
 
     @property
     def theta(self) -> PyTree:

@@ -149,7 +149,8 @@ def test_network_oscillator_in_one_update(confirm, updates):
     # `confirm` (the default) adds the update that removes the first one's bias.
     problem = problems.harmonic_oscillator()
     solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
-                           root_finder=FixedPointIteration(confirm=confirm), iteration_log=10)
+                           root_finder=FixedPointIteration(confirm=confirm, picard=False),
+                           iteration_log=10)
     sol = run(problem, solver, 0.1, 10)
     assert sol.result == diffrax.RESULTS.successful
     np.testing.assert_array_equal(np.asarray(sol.solver_state.iteration_log), updates)
@@ -320,8 +321,9 @@ def test_predict_halves_the_updates_of_a_run_to_round_off():
     problem = make(**kw)
     ends, histograms = [], []
     for predict in (False, True):
+        # the chord iteration itself (not the Jacobian-free one this Lagrangian allows)
         solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0, inverse=False,
-                                                             predict=predict))
+                                                             predict=predict, picard=False))
         sol = run(problem, solver, h, n)
         assert sol.result == diffrax.RESULTS.successful
         ends.append(np.asarray(sol.ys[0][-1]))

@@ -1,0 +1,240 @@
+"""How far the variational step is from the hardware's floor, side by side in one process.
+
+Kepler (e = 0.5, float64), time per step of a whole jitted `diffeqsolve` with constant
+steps, alone and per member-step of a `vmap` over `--members` orbits (e in [0.1, 0.6]):
+
+- `CGVI(k)` with its default root finder, which takes the Jacobian-free iteration
+  (`diffrax_vi.picard`) on this constant-mass Lagrangian;
+- the same with `FixedPointIteration(picard=False)`: the chord iteration with the Jacobian
+  formed once per step, the default before the engine;
+- the default projected `NetworkVI` (tanh, `k + 1` neurons, Gauss–Legendre `k + 1`: the
+  same span dimension) with `FixedPointIteration(ftol=0, predict=True)`, which takes the
+  engine, and with its default `RoundoffNewton`;
+- `diffrax.Dopri8` at `--dopri-rtol`;
+- the floor: a plain-JAX Gauss collocation step with `k + 1` stages, a fixed count of
+  fixed-point updates (`--floor-updates`) and `lax.scan` over the steps (cost only: its
+  error is not comparable).
+
+Then the first call of a fresh process (trace, compile and one run; no persistent
+compilation cache) of `CGVI(6)` and `NetworkVI` against `diffrax.Dopri8`'s on the same
+problem, double pendulum and Kepler, 10 steps each: `--fresh` runs, interleaved, medians and
+their ratios.
+
+    .venv/bin/python -m benchmarks.step_floor [--degree 6] [--members 256] [--fresh 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+
+def _timed(fn, *args, repeats: int) -> float:
+    """Best wall time of `repeats` calls after one warm-up (seconds)."""
+    import jax
+
+    jax.block_until_ready(fn(*args))
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def kepler_states(eccentricities):
+    import jax.numpy as jnp
+
+    e = np.asarray(eccentricities, np.float64)
+    q = jnp.asarray(np.stack([1 - e, 0 * e], -1))
+    p = jnp.asarray(np.stack([0 * e, np.sqrt((1 + e) / (1 - e))], -1))
+    return q, p
+
+
+def gauss_floor(stages: int, h: float, updates: int):
+    """A plain-JAX Gauss collocation step (first-order stages, fixed updates): cost only."""
+    import jax
+    import jax.numpy as jnp
+    from numpy.polynomial.legendre import leggauss
+
+    x, w = leggauss(stages)
+    c, b = (x + 1) / 2, w / 2
+    a = np.zeros((stages, stages))
+    for j in range(stages):
+        poly = np.poly1d([1.0])
+        for m in range(stages):
+            if m != j:
+                poly *= np.poly1d([1.0, -c[m]]) / (c[j] - c[m])
+        integral = poly.integ()
+        a[:, j] = integral(c) - integral(0)
+
+    def acc(q):
+        r2 = jnp.sum(q * q, -1, keepdims=True)
+        return -q / (r2 * jnp.sqrt(r2))
+
+    def combine(m, k):
+        return jnp.sum(jnp.asarray(m)[None] * k.T[:, None, :], -1).T
+
+    def step(y, _):
+        q, p = y
+        k = jnp.broadcast_to(acc(q), (stages, q.shape[-1]))
+        for _ in range(updates):
+            stage_p = p + h * combine(a, k)
+            k = acc(q + h * combine(a, stage_p))
+        stage_p = p + h * combine(a, k)
+        return (q + h * (b @ stage_p), p + h * (b @ k)), None
+
+    return step
+
+
+def step_costs(args) -> list[str]:
+    import diffrax
+    import jax
+    import jax.numpy as jnp
+
+    import diffrax_vi as dvi
+    from diffrax_vi.problems.kepler import kepler
+
+    degree, h = args.degree, 2 * math.pi / args.steps_per_orbit
+    orbits = args.orbits
+    n = args.steps_per_orbit * orbits
+    term = kepler(eccentricity=0.5).term
+    fpi = dvi.FixedPointIteration(ftol=0.0, predict=True)
+    width = degree + 1
+    solvers = {
+        f"CGVI({degree}) engine": dvi.CGVI(degree),
+        f"CGVI({degree}) chord": dvi.CGVI(
+            degree, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False)
+        ),
+        f"NetworkVI(tanh {width}) engine": dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1),
+            root_finder=fpi,
+        ),
+        f"NetworkVI(tanh {width}) Newton": dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1)
+        ),
+    }
+    lines = [f"# Kepler e = 0.5, h = 2pi/{args.steps_per_orbit}, {orbits} orbits alone, "
+             f"{args.ensemble_orbits} orbits x {args.members} members under vmap"]
+    lines.append(f"{'solver':34s} {'us/step':>9s} {'us/member-step':>15s} {'error':>9s}")
+    q0, p0 = kepler_states([0.5])
+    qs, ps = kepler_states(np.linspace(0.1, 0.6, args.members))
+    m = args.steps_per_orbit * args.ensemble_orbits
+
+    def diffrax_run(solver, steps, controller=None, dt0=h):
+        def run(q, p):
+            sol = diffrax.diffeqsolve(
+                term, solver, 0.0, steps * h, dt0, (q, p), max_steps=steps * 4 + 16,
+                saveat=diffrax.SaveAt(t1=True),
+                stepsize_controller=controller or diffrax.ConstantStepSize(),
+            )
+            return sol.ys[0][-1], sol.stats["num_steps"]
+        return run
+
+    from diffrax_vi.problems.kepler import solve_kepler_equation
+
+    anomaly = solve_kepler_equation(np.array([n * h]), 0.5)[0]
+    q_exact = np.array([math.cos(anomaly) - 0.5, math.sqrt(0.75) * math.sin(anomaly)])
+    rows = dict(solvers)
+    rows["Dopri8"] = diffrax.Dopri8()
+    for name, solver in rows.items():
+        controller = None
+        dt0 = h
+        if name == "Dopri8":
+            controller = diffrax.PIDController(rtol=args.dopri_rtol, atol=args.dopri_rtol)
+            dt0 = None
+        one = jax.jit(diffrax_run(solver, n, controller, dt0))
+        seconds = _timed(one, q0[0], p0[0], repeats=args.repeats)
+        q_end, steps = one(q0[0], p0[0])
+        error = float(np.max(np.abs(np.asarray(q_end) - q_exact)))
+        many = jax.jit(jax.vmap(diffrax_run(solver, m, controller, dt0)))
+        batch_seconds = _timed(many, qs, ps, repeats=max(1, args.repeats // 2))
+        _, batch_steps = many(qs, ps)
+        per_member = batch_seconds / (args.members * float(np.mean(np.asarray(batch_steps))))
+        lines.append(f"{name:34s} {seconds / int(steps) * 1e6:9.2f} {per_member * 1e6:15.3f} "
+                     f"{error:9.1e}")
+    floor = gauss_floor(degree + 1, h, args.floor_updates)
+    one = jax.jit(lambda q, p: jax.lax.scan(floor, (q, p), None, length=n)[0])
+    seconds = _timed(one, q0[0], p0[0], repeats=args.repeats)
+    many = jax.jit(jax.vmap(lambda q, p: jax.lax.scan(floor, (q, p), None, length=m)[0]))
+    batch_seconds = _timed(many, qs, ps, repeats=max(1, args.repeats // 2))
+    lines.append(f"{'floor: plain-JAX Gauss, ' + str(args.floor_updates) + ' updates':34s} "
+                 f"{seconds / n * 1e6:9.2f} {batch_seconds / (args.members * m) * 1e6:15.3f} "
+                 f"{'-':>9s}")
+    del jnp
+    return lines
+
+
+FIRST_CALL = """
+import sys, time
+start = time.perf_counter()
+import jax
+jax.config.update("jax_enable_x64", True)
+import diffrax, diffrax_vi as dvi
+from diffrax_vi import problems
+name, which = sys.argv[1], sys.argv[2]
+problem = getattr(problems, name)()
+solver = {"Dopri8": diffrax.Dopri8(), "CGVI(6)": dvi.CGVI(6),
+          "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))}[which]
+h = float(problem.dt)
+t0 = time.perf_counter()
+sol = diffrax.diffeqsolve(problem.term, solver, 0.0, 10 * h, h, problem.y0, args=problem.args,
+                          max_steps=16)
+jax.block_until_ready(sol.ys)
+print(time.perf_counter() - t0)
+"""
+
+
+def first_calls(args) -> list[str]:
+    lines = [f"# first call in a fresh process (trace + compile + run, 10 steps), median of "
+             f"{args.fresh} interleaved runs"]
+    for problem in ("double_pendulum", "kepler"):
+        times = {which: [] for which in ("Dopri8", "CGVI(6)", "NetworkVI")}
+        for _ in range(args.fresh):
+            for which in times:
+                out = subprocess.run(
+                    [sys.executable, "-c", FIRST_CALL, problem, which], capture_output=True,
+                    text=True, check=True,
+                )
+                times[which].append(float(out.stdout.strip().splitlines()[-1]))
+        dopri = statistics.median(times["Dopri8"])
+        for which, values in times.items():
+            median = statistics.median(values)
+            lines.append(f"{problem:16s} {which:10s} median {median:6.2f} s "
+                         f"({', '.join(f'{v:.2f}' for v in values)}), "
+                         f"{median / dopri:4.2f}x Dopri8")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--degree", type=int, default=6)
+    parser.add_argument("--steps-per-orbit", type=int, default=64)
+    parser.add_argument("--orbits", type=int, default=20)
+    parser.add_argument("--ensemble-orbits", type=int, default=2)
+    parser.add_argument("--members", type=int, default=256)
+    parser.add_argument("--floor-updates", type=int, default=4)
+    parser.add_argument("--dopri-rtol", type=float, default=1e-13)
+    parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--fresh", type=int, default=5, help="0 skips the first calls")
+    parser.add_argument("--only", choices=("steps", "first-call"))
+    args = parser.parse_args()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    print(f"# jax {jax.__version__} on {jax.devices()[0].platform}")
+    if args.only != "first-call":
+        print("\n".join(step_costs(args)), flush=True)
+    if args.only != "steps" and args.fresh:
+        print("\n".join(first_calls(args)), flush=True)
+
+
+if __name__ == "__main__":
+    main()

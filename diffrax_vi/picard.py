@@ -1,0 +1,401 @@
+"""The projected step solved without a Jacobian, for a Lagrangian whose kinetic matrix is
+constant.
+
+On a span known when the step is traced (`CGVI`, the default network step), the projected
+step's equations are linear in the curve's coordinates but for the node values of two
+functions of the curve: the forces `f_j = ∂L/∂q` and, where `∂²L/∂v² = M` is constant, the
+momentum's offset `g_j = ∂L/∂v − M v_j` (zero for `½ vᵀMv − V(q)`; `A(q)` for a magnetic
+term). Given those values the equations are one linear solve with a constant matrix, so the
+node values of the curve are fixed linear maps of them:
+
+    Q = q_n + h (h Q_f F + Q_g G + q_p p_nᵀ) M⁻¹,     V = (h V_f F + V_g G + v_p p_nᵀ) M⁻¹,
+
+with `Q_f, Q_g, V_f, V_g` (`R × R`) and `q_p, v_p` (`R`) computed once, in NumPy, when the
+step is traced. The fixed-point iteration `F, G ← f, g (Q(F, G), V(F, G))` (Picard's, as in
+IRKGL16) then needs one evaluation of the Lagrangian's gradient over all nodes and a few small
+products with constants per update: no Jacobian, no factorisation, nothing that depends on the
+step but `h`. It contracts at a rate of order `(hω)²` for a motion of frequency `ω`.
+
+It runs until the forces stop changing (round-off), then the step's unknowns
+`z = (δc, Δp)` are formed from the last values and the residual of the step's equations is
+evaluated once at `z`, as a check. A solve that does not contract (a stiff problem, a long
+step) is handed to the root finder's own iteration from the same start (`solve_projected`),
+which costs nothing unless some member of a batch needs it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+__all__ = [
+    "KineticStructure", "PicardPlan", "PicardSolve", "extrapolation", "kinetic_structure",
+    "picard_plan", "picard_solve", "start_at_rest", "step_residual",
+]
+
+# Updates made without a test in between, before the loop that tests each one.
+UNROLLED = 3
+# Updates at most before the iteration is handed to the root finder's own.
+MAX_UPDATES = 40
+# Stop once the predicted remaining change of the forces is below 1/PREDICT_MARGIN of a
+# rounding unit of them (relative to their largest value).
+PREDICT_MARGIN = 1024
+# A change within NOISE rounding units of the forces is rounding noise: once the changes stop
+# shrinking there, the iteration is at round-off.
+NOISE = 64
+# Consecutive growing updates, above the noise, that end the iteration as not contracting.
+MAX_GROWTH = 2
+
+
+class KineticStructure(NamedTuple):
+    """What a Lagrangian's derivatives depend on, read off its program (not sampled).
+
+    - `mass_constant`: `∂²L/∂v²` depends on none of `t`, `q`, `v`;
+    - `offset_moves`: `∂L/∂v` at `v = 0` depends on `t` or `q` (a magnetic term);
+    - `force_reads_velocity`: `∂L/∂q` depends on `v`;
+    - `mass`: `∂²L/∂v²` as a NumPy array where it depends on nothing traced at all (neither
+      the state nor `args` nor the term's parameters), else `None`.
+    """
+
+    mass_constant: bool
+    offset_moves: bool
+    force_reads_velocity: bool
+    mass: np.ndarray | None
+
+
+def _used_inputs(fn, *inputs) -> list[bool]:
+    """Which leaves of `inputs` the outputs of `fn(*inputs)` depend on: dead-code elimination
+    of its program, so the answer is structural (a dependence that cancels numerically still
+    counts)."""
+    from jax._src.interpreters import partial_eval as pe
+
+    closed = jax.make_jaxpr(fn)(*inputs)
+    _, used = pe.dce_jaxpr(closed.jaxpr, [True] * len(closed.jaxpr.outvars))
+    return list(used)
+
+
+def kinetic_structure(term, t, q, args) -> KineticStructure | None:
+    """The `KineticStructure` of the Lagrangian of `term` (a `LagrangianTerm`) at the shapes
+    and dtypes of `t`, `q` and `args`; `None` where the term is no Lagrangian or its program
+    cannot be read."""
+    from .terms import LagrangianTerm
+
+    if not isinstance(term, LagrangianTerm):
+        return None
+    dynamic, static = eqx.partition((term, args), eqx.is_array)
+    v = jnp.zeros_like(q)
+
+    def lagrangian(t, q, v, dynamic):
+        term_, args_ = eqx.combine(dynamic, static)
+        return term_(t, q, v, args_)
+
+    def mass(t, q, v, dynamic):
+        return jax.hessian(lagrangian, argnums=2)(t, q, v, dynamic)
+
+    def offset(t, q, v, dynamic):
+        return jax.grad(lagrangian, argnums=2)(t, q, jnp.zeros_like(v), dynamic)
+
+    def force(t, q, v, dynamic):
+        return jax.grad(lagrangian, argnums=1)(t, q, v, dynamic)
+
+    try:
+        inputs = (jnp.asarray(t), q, v, dynamic)
+        used_mass = _used_inputs(mass, *inputs)
+        used_offset = _used_inputs(offset, *inputs)
+        used_force = _used_inputs(force, *inputs)
+    except Exception:  # a program that cannot be traced apart: no fast path, never wrong
+        return None
+    mass_constant = not any(used_mass[:3])
+    known = None
+    if mass_constant and not any(used_mass):
+        with jax.ensure_compile_time_eval():
+            zeros = jax.tree_util.tree_map(
+                lambda a: np.zeros(a.shape, a.dtype), (jnp.asarray(t), q, v, dynamic)
+            )
+            known = np.asarray(mass(*zeros), np.float64)
+    return KineticStructure(
+        mass_constant=mass_constant,
+        offset_moves=bool(used_offset[0] or used_offset[1]),
+        force_reads_velocity=bool(used_force[2]),
+        mass=known,
+    )
+
+
+class PicardPlan(NamedTuple):
+    """The constant maps of the iteration (NumPy float64), for one span and rule.
+
+    Node values: `qf, qg` (`R × R`), `qp` (`R`) for `Q`; `vf, vg, vp` for `V`. Unknowns:
+    `xf, xg` (`(k + 1) × R`), `xp` (`k + 1`) for `X = [δc M / h; Δp]`; `kinv`, the inverse
+    of the kinetic part of the equations' Jacobian in `X`. The step's equations: `gq`, `gv`
+    (`R × k`), the span's values and slopes at the nodes; `bq`, `bv` (`k × R`), the same
+    weighted by the rule; `g0`, `gd` (`k`), the directions' values at `τ = 0` and changes
+    over the step; `live` (`k`), the directions kept."""
+
+    qf: np.ndarray
+    qg: np.ndarray
+    qp: np.ndarray
+    vf: np.ndarray
+    vg: np.ndarray
+    vp: np.ndarray
+    xf: np.ndarray
+    xg: np.ndarray
+    xp: np.ndarray
+    kinv: np.ndarray
+    gq: np.ndarray
+    gv: np.ndarray
+    bq: np.ndarray
+    bv: np.ndarray
+    g0: np.ndarray
+    gd: np.ndarray
+    live: np.ndarray
+
+
+def picard_plan(span, weights) -> PicardPlan | None:
+    """The `PicardPlan` of a span known when the step is traced and the same in every
+    coordinate (`VariableProjection.uniform_span`); `None` where it is not, or where the
+    kinetic block of its equations is singular."""
+    leaves = (span.gq, span.gv, span.g0, span.gd, span.live)
+    if any(isinstance(a, jax.core.Tracer) for a in leaves) or isinstance(weights, jax.core.Tracer):
+        return None
+    if not all(bool(np.all(np.asarray(a) == np.asarray(a)[:1])) for a in leaves):
+        return None
+    gq, gv, g0, gd = (np.asarray(a, np.float64)[0] for a in (span.gq, span.gv, span.g0, span.gd))
+    live = np.asarray(span.live)[:, 0]
+    b = np.asarray(weights, np.float64)
+    k = gq.shape[1]
+    # Rows of the equations along each live direction, in X = [δc M / h; Δp]:
+    #   −Σ_l S_kl X_l + (g0 + gd)_k X_k+1 = h Σ_j b_j gq_jk f_j + Σ_j b_j gv_jk g_j − gd_k p_n,
+    # and continuity Σ_k g0_k X_k = 0; a pinned direction has X_k = 0.
+    stiff = np.einsum("j,jk,jl->kl", b, gv, gv)
+    block = np.zeros((k + 1, k + 1))
+    block[:k, :k] = np.where(live[:, None], -stiff, np.eye(k))
+    block[:k, k] = np.where(live, g0 + gd, 0.0)
+    block[k, :k] = g0
+    try:
+        inverse = np.linalg.inv(block)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(inverse)):
+        return None
+    wf = np.where(live[:, None], (b[:, None] * gq).T, 0.0)  # (k, R)
+    wg = np.where(live[:, None], (b[:, None] * gv).T, 0.0)
+    wp = np.where(live, gd, 0.0)
+    xf, xg, xp = inverse[:, :k] @ wf, inverse[:, :k] @ wg, -(inverse[:, :k] @ wp)
+    # the residual's continuity row is −Σ_k g0_k δc_k
+    jacobian = block.copy()
+    jacobian[k, :k] = -g0
+    return PicardPlan(
+        qf=gq @ xf[:k], qg=gq @ xg[:k], qp=gq @ xp[:k],
+        vf=gv @ xf[:k], vg=gv @ xg[:k], vp=gv @ xp[:k],
+        xf=xf, xg=xg, xp=xp, kinv=np.linalg.inv(jacobian),
+        gq=gq, gv=gv, bq=(b[:, None] * gq).T, bv=(b[:, None] * gv).T, g0=g0, gd=gd, live=live,
+    )
+
+
+def _combine(matrix: np.ndarray, values: Array) -> Array:
+    """`matrix @ values` for a constant `matrix` (`(m, n)` against `(n, D)`), laid out for
+    how it runs: alone, as one fused multiply and a reduction over the minor axis (a `dot`
+    of these sizes costs more in its call than in its arithmetic); under `vmap`, as one
+    batched `dot` (where the fused form's reduction runs over a strided axis)."""
+    constant = np.asarray(matrix, np.float64)
+
+    @jax.custom_batching.custom_vmap
+    def apply(values):
+        m = jnp.asarray(constant, values.dtype)
+        return jnp.sum(m[None, :, :] * values.T[:, None, :], axis=-1).T
+
+    @apply.def_vmap
+    def _batched(axis_size, in_batched, values):
+        del axis_size
+        if not in_batched[0]:
+            return apply(values), False
+        m = jnp.asarray(constant, values.dtype)
+        return jnp.einsum("ij,bjd->bid", m, values), True
+
+    return apply(values)
+
+
+def _outer(vector: np.ndarray, row: Array) -> Array:
+    """`vector ⊗ row` for a constant `vector`."""
+    return jnp.stack([float(c) * row for c in np.asarray(vector)])
+
+
+class PicardSolve(NamedTuple):
+    """How the iteration ended: the unknowns `z = (δc, Δp)`, the node values `(F, G)` it
+    ended with (the forces at the nodes of the last curve, and the momentum's offsets), the
+    updates made, the last relative change of those values, and whether it converged."""
+
+    unknowns: tuple[Array, Array]
+    values: tuple[Array, Array]
+    iterations: Array
+    residual: Array
+    converged: Array
+
+
+class _Carry(NamedTuple):
+    z: tuple[Array, Array]
+    f: Array
+    change: Array
+    residual: Array
+    growth: Array
+    updates: Array
+    converged: Array
+    done: Array
+
+
+class _Kinetic(NamedTuple):
+    """Products with the kinetic matrix and its inverse on the coordinate axis."""
+
+    times_mass: object
+    times_minv: object
+
+
+def _kinetic(structure: KineticStructure, ctx) -> _Kinetic:
+    dim = ctx.q0.shape[0]
+    if structure.mass is not None:
+        mass_np = structure.mass
+        if np.array_equal(mass_np, np.eye(dim)):
+            return _Kinetic(lambda x: x, lambda x: x)
+        minv_np = np.linalg.inv(mass_np)
+        return _Kinetic(lambda x: _combine(mass_np.T, x.T).T,
+                        lambda x: _combine(minv_np.T, x.T).T)
+    mass = jax.hessian(lambda v: ctx.term(ctx.t, ctx.q0, v, ctx.args))(jnp.zeros_like(ctx.q0))
+    minv = jnp.linalg.inv(mass)
+    return _Kinetic(lambda x: x @ mass, lambda x: x @ minv)
+
+
+def node_times(ctx) -> Array:
+    return ctx.t + ctx.nodes.astype(ctx.q0.dtype) * ctx.h
+
+
+def _momenta_and_forces(ctx, q, v):
+    return jax.vmap(ctx.term.momentum_and_force, in_axes=(0, 0, 0, None))(
+        node_times(ctx), q, v, ctx.args
+    )
+
+
+def start_at_rest(structure: KineticStructure, ctx) -> tuple[Array, Array]:
+    """The start of a step with nothing to continue: the forces of the constant curve `q_n`
+    at every node (and its momentum offsets)."""
+    r = ctx.nodes.shape[0]
+    zero = jnp.zeros_like(ctx.q0)
+    p, f = ctx.term.momentum_and_force(ctx.t, ctx.q0, zero, ctx.args)
+    shape = (r, ctx.q0.shape[0])
+    return (jnp.broadcast_to(f.astype(ctx.p0.dtype), shape),
+            jnp.broadcast_to(p.astype(ctx.p0.dtype), shape))
+
+
+def extrapolation(nodes: np.ndarray, ratio: Array, values: Array) -> Array:
+    """The polynomial through `values` at `nodes` (`(R, D)`) of the last step, evaluated at
+    this step's nodes `1 + ratio·c_j` in the last step's time (`ratio` = this step's length
+    over the last's): the next step's start, as IRKGL16 starts its stages."""
+    c = np.asarray(nodes, np.float64)
+    r = c.shape[0]
+    # ℓ_m(1 + ρ c_i) as a polynomial in ρ, per (i, m): coefficients from NumPy
+    coeffs = np.zeros((r, r, r))  # (power, i, m)
+    for i in range(r):
+        for m in range(r):
+            poly = np.poly1d([1.0])
+            for n in range(r):
+                if n != m:
+                    poly *= np.poly1d([c[i], 1.0 - c[n]]) / (c[m] - c[n])
+            coeffs[: poly.order + 1, i, m] = poly.coeffs[::-1]
+    # Horner in ρ over the products with the constant matrices
+    out = _combine(coeffs[r - 1], values)
+    for power in range(r - 2, -1, -1):
+        out = out * ratio + _combine(coeffs[power], values)
+    return out
+
+
+def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
+                 start: tuple[Array, Array], residual) -> PicardSolve:
+    """Solve the step's equations `residual(z) -> ((r, c), f)` (the projected step's reduced
+    residual, and the forces at the nodes) by the iteration `z ← z − K⁻¹ (r, c)`, with `K`
+    the kinetic part of their Jacobian (constant here), from the unknowns that the node
+    values `start = (F, G)` give.
+
+    The iteration is Picard's for the node values: with `K` the whole Jacobian but for the
+    forces' and offsets' derivatives, one update moves the curve to where the forces of the
+    last curve put it. It is run on the step's own equations, not on the node values, so
+    that its fixed point is their root as rounded in this step (constant maps rounded once,
+    when the step is traced, would put the same error into every step: an energy drift)."""
+    dtype = ctx.q0.dtype
+    eps = float(jnp.finfo(dtype).eps)
+    h, p0 = ctx.h, ctx.p0
+    kinetic = _kinetic(structure, ctx)
+    k = plan.xf.shape[0] - 1
+    live = span.live
+
+    f0, g0 = (a.astype(dtype) for a in start)
+    x = h * _combine(plan.xf, f0) + _combine(plan.xg, g0) + _outer(plan.xp, p0)
+    z0 = (jnp.where(live, h * kinetic.times_minv(x[:k]), 0).astype(dtype), x[k].astype(dtype))
+
+    def update(c: _Carry) -> _Carry:
+        (r, cont), f = residual(c.z)
+        rows = jnp.concatenate([jnp.where(live, r, 0), kinetic.times_mass(cont[None]) / h])
+        dx = -_combine(plan.kinv, rows)
+        dc = jnp.where(live, h * kinetic.times_minv(dx[:k]), 0)
+        dp = dx[k]
+        z = (c.z[0] + dc, c.z[1] + dp)
+        delta = jnp.maximum(jnp.max(jnp.abs(dc)), jnp.max(jnp.abs(dp)))
+        size = jnp.maximum(jnp.max(jnp.abs(z[0])), jnp.max(jnp.abs(z[1])))
+        size = jnp.maximum(size, jnp.finfo(dtype).tiny)
+        change = delta / size
+        fsize = jnp.maximum(jnp.max(jnp.abs(jnp.where(live, r, 0))), jnp.max(jnp.abs(cont)))
+        known = jnp.isfinite(c.change) & (c.change > 0)
+        rate = change / jnp.where(known, c.change, 1)
+        predicted = known & (rate < 1) & (change * rate <= (1 - rate) * eps / PREDICT_MARGIN)
+        at_noise = (change <= NOISE * eps) & (change >= 0.5 * c.change)
+        finite = jnp.isfinite(change)
+        converged = ((change == 0) | predicted | at_noise) & finite
+        growing = (change > NOISE * eps) & (change >= c.change)
+        growth = jnp.where(growing, c.growth + 1, 0)
+        updates = c.updates + 1
+        done = converged | ~finite | (growth > MAX_GROWTH) | (updates >= MAX_UPDATES)
+        return _Carry(z, f, change, fsize, growth, updates, converged, done)
+
+    inf = jnp.full((), jnp.inf, dtype)
+    zero = jnp.array(0, jnp.int32)
+    no = jnp.array(False)
+    carry = _Carry(z0, f0, inf, inf, zero, zero, no, no)
+    for _ in range(UNROLLED):
+        carry = update(carry)
+    end = jax.lax.while_loop(lambda c: ~c.done, update, carry)
+    g = g0
+    if structure.offset_moves:  # the offsets of the last curve, for the next step's start
+        q, dq = _curve_at_nodes(span, end.z[0], ctx.q0)
+        p, _ = _momenta_and_forces(ctx, q, dq / h)
+        g = p - kinetic.times_mass(dq / h)
+    return PicardSolve(end.z, (end.f, g), end.updates, end.residual.astype(dtype),
+                       end.converged)
+
+
+def step_residual(plan: PicardPlan, ctx, z) -> tuple[tuple[Array, Array], Array]:
+    """The projected step's equations at `z = (δc, Δp)` on a uniform span
+    (`VariableProjection.reduced_residual_and_forces`, with the span's constants as NumPy
+    arrays): `((r, c), f)`, `r` along each direction (`δc` itself where pinned), `c` the
+    continuity `−Σ_k g0_k δc_k`, `f` the forces at the nodes."""
+    dc, dp = z
+    dtype = dc.dtype
+    h, p0 = ctx.h, ctx.p0
+    q = ctx.q0 + _combine(plan.gq, dc)
+    v = _combine(plan.gv, dc) / h
+    p, f = _momenta_and_forces(ctx, q, v)
+    forces = h * _combine(plan.bq, f)
+    momenta = _combine(plan.bv, p)
+    g0, gd = (jnp.asarray(a, dtype)[:, None] for a in (plan.g0, plan.gd))
+    r = dp * g0 + dp * gd + p0 * gd - forces - momenta
+    live = jnp.asarray(plan.live)[:, None]
+    r = jnp.where(live, r, dc)
+    c = -_combine(plan.g0[None], dc)[0]
+    return (r, c), f
+
+
+def _curve_at_nodes(span, dc, q0):
+    gq, gv = (np.asarray(a, np.float64)[0] for a in (span.gq, span.gv))
+    return q0 + _combine(gq, dc), _combine(gv, dc)

@@ -1,0 +1,194 @@
+"""The Jacobian-free iteration of the projected step (`diffrax_vi.picard`)."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffrax_vi as dvi
+from diffrax_vi import problems
+from diffrax_vi.fixed_point import FixedPointIteration
+from diffrax_vi.picard import kinetic_structure, picard_solve, start_at_rest, step_residual
+
+jax.config.update("jax_enable_x64", True)
+
+CHORD = FixedPointIteration(ftol=0.0, predict=True, picard=False)
+
+MASS = jnp.array([[2.0, 0.3], [0.3, 1.0]])
+
+
+def _mass_spring(t, q, v, args):
+    return 0.5 * v @ MASS @ v - 0.5 * q @ q - 0.1 * q[0] ** 4
+
+
+CASES = {
+    # problem, step, steps
+    "kepler": (lambda: problems.kepler(eccentricity=0.5), 2 * np.pi / 100, 60),
+    "charged_particle": (problems.charged_particle, 0.05, 40),
+    "mass_spring": (None, 0.2, 40),  # a constant mass matrix that is not the identity
+}
+
+
+def _problem(name):
+    if name == "mass_spring":
+        term = dvi.LagrangianTerm(_mass_spring)
+        return term, (jnp.array([0.5, -0.2]), jnp.array([0.1, 0.3])), None
+    problem = CASES[name][0]()
+    return problem.term, problem.y0, problem.args
+
+
+def _solve(solver, name, n=None, y0=None, saveat=None):
+    term, y, args = _problem(name)
+    _, h, steps = CASES[name]
+    n = steps if n is None else n
+
+    @eqx.filter_jit
+    def go(y):
+        return diffrax.diffeqsolve(
+            term, solver, 0.0, n * h, h, y, args=args, max_steps=n,
+            saveat=saveat or diffrax.SaveAt(t1=True, solver_state=True), throw=False,
+        )
+
+    return go(y if y0 is None else y0)
+
+
+def _engine(solver, term, y0, args, h=0.1):
+    ctx = solver.step_context(term, 0.0, h, y0, args)
+    return solver._picard_engine(ctx)
+
+
+def test_structure_is_read_from_the_lagrangian():
+    kepler = problems.kepler()
+    q = jnp.ones(2)
+    s = kinetic_structure(kepler.term, jnp.zeros(()), q, kepler.args)
+    assert s.mass_constant and not s.offset_moves and not s.force_reads_velocity
+    np.testing.assert_array_equal(s.mass, np.eye(2))
+    particle = problems.charged_particle()
+    s = kinetic_structure(particle.term, jnp.zeros(()), particle.y0[0], particle.args)
+    assert s.mass_constant and s.offset_moves and s.force_reads_velocity
+    pendulum = problems.double_pendulum()
+    s = kinetic_structure(pendulum.term, jnp.zeros(()), pendulum.y0[0], pendulum.args)
+    assert not s.mass_constant
+    # a mass that is a parameter: constant, but known only when the step runs
+    term = dvi.LagrangianTerm(lambda t, q, v, m: 0.5 * m * v @ v - 0.5 * q @ q)
+    s = kinetic_structure(term, jnp.zeros(()), q, jnp.asarray(2.0))
+    assert s.mass_constant and s.mass is None
+
+
+def test_the_engine_is_chosen_only_where_it_applies():
+    kepler = problems.kepler()
+    assert _engine(dvi.CGVI(6), kepler.term, kepler.y0, kepler.args) is not None
+    assert _engine(dvi.CGVI(6, root_finder=CHORD), kepler.term, kepler.y0, kepler.args) is None
+    pendulum = problems.double_pendulum()
+    assert _engine(dvi.CGVI(6), pendulum.term, pendulum.y0, pendulum.args) is None
+    # the default network step keeps its Newton root finder
+    network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))
+    assert _engine(network, kepler.term, kepler.y0, kepler.args) is None
+    fast_network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
+                                 root_finder=FixedPointIteration(ftol=0.0, predict=True))
+    assert _engine(fast_network, kepler.term, kepler.y0, kepler.args) is not None
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_same_steps_as_the_chord_iteration(name):
+    # Same equations, same root: the runs agree to round-off, and the engine took its own
+    # path on every step (no restart through the chord iteration).
+    fast = _solve(dvi.CGVI(6), name)
+    chord = _solve(dvi.CGVI(6, root_finder=CHORD), name)
+    assert fast.result == diffrax.RESULTS.successful
+    assert int(fast.solver_state.restarts) == 0
+    for a, b in zip(fast.ys, chord.ys, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_its_step_is_a_root_of_the_step_equations(name):
+    # The residual of the projected step's equations as the formulation writes them, at the
+    # engine's unknowns from a start at rest, is at round-off.
+    solver = dvi.CGVI(6)
+    term, y0, args = _problem(name)
+    ctx = solver.step_context(term, 0.0, CASES[name][1], y0, args)
+    plan, structure, span = solver._picard_engine(ctx)
+    solved = picard_solve(plan, structure, ctx, span, start_at_rest(structure, ctx),
+                          lambda z: step_residual(plan, ctx, z))
+    assert bool(solved.converged)
+    r, c = solver.formulation.reduced_residual(solved.unknowns, (ctx, span, None))
+    scale = 1 + max(float(jnp.max(jnp.abs(y0[0]))), float(jnp.max(jnp.abs(y0[1]))))
+    assert max(float(jnp.max(jnp.abs(r))), float(jnp.max(jnp.abs(c)))) <= (
+        64 * np.finfo(np.float64).eps * scale
+    )
+
+
+def test_gradients_match_finite_differences():
+    term = dvi.LagrangianTerm(lambda t, q, v, k: 0.5 * v @ v - 0.5 * k * q @ q - 0.1 * q[0] ** 4)
+    solver = dvi.CGVI(4)
+    assert _engine(solver, term, (jnp.ones(2), jnp.ones(2)), jnp.asarray(1.3)) is not None
+
+    def final(k, q0):
+        sol = diffrax.diffeqsolve(term, solver, 0.0, 3.0, 0.3, (q0, jnp.array([0.1, 0.0])),
+                                  args=k, saveat=diffrax.SaveAt(t1=True))
+        return sol.ys[0][-1, 0] + sol.ys[1][-1, 1]
+
+    k, q0 = 1.3, jnp.array([0.5, 0.2])
+    gk, gq = jax.grad(final, argnums=(0, 1))(k, q0)
+    d = 1e-6
+    fk = (final(k + d, q0) - final(k - d, q0)) / (2 * d)
+    fq = [(final(k, q0.at[i].add(d)) - final(k, q0.at[i].add(-d))) / (2 * d) for i in range(2)]
+    np.testing.assert_allclose(float(gk), float(fk), rtol=1e-7)
+    np.testing.assert_allclose(np.asarray(gq), np.asarray(fq), rtol=1e-7, atol=1e-9)
+
+
+def test_vmap_equals_the_loop():
+    # (batched, the engine's products with constants run as one batched product instead of
+    # a fused reduction: the members agree with their single runs to rounding)
+    kepler = problems.kepler(eccentricity=0.5)
+    q0s = jnp.stack([kepler.y0[0] * s for s in (1.0, 1.02, 0.97)])
+    p0s = jnp.stack([kepler.y0[1] / np.sqrt(s) for s in (1.0, 1.02, 0.97)])
+    solver = dvi.CGVI(6)
+
+    def one(q, p):
+        sol = _solve(solver, "kepler", y0=(q, p), saveat=diffrax.SaveAt(t1=True))
+        return sol.ys
+
+    batched = jax.vmap(one)(q0s, p0s)
+    for i in range(3):
+        single = one(q0s[i], p0s[i])
+        for a, b in zip(batched, single, strict=True):
+            np.testing.assert_allclose(np.asarray(a[i]), np.asarray(b), rtol=1e-13, atol=1e-15)
+
+
+def test_a_step_it_cannot_contract_goes_to_the_chord_iteration():
+    # A stiff quartic spring at a long step: the Jacobian-free iteration does not contract;
+    # the step is handed to the chord iteration (a restart), and the run ends where the
+    # chord iteration alone ends it.
+    term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 2500.0 * jnp.sum(q**4))
+    y0 = (jnp.array([1.0]), jnp.array([0.0]))
+
+    def go(solver):
+        return diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.1, y0, max_steps=10,
+                                   saveat=diffrax.SaveAt(t1=True, solver_state=True),
+                                   throw=False)
+
+    fast, chord = go(dvi.CGVI(6)), go(dvi.CGVI(6, root_finder=CHORD))
+    assert fast.result == chord.result
+    assert int(fast.solver_state.restarts) > 0
+    if fast.result == diffrax.RESULTS.successful:
+        np.testing.assert_allclose(np.asarray(fast.ys[0]), np.asarray(chord.ys[0]),
+                                   rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype, bound", [(jnp.float32, 1e-5), (jnp.float16, 2e-2)])
+def test_lower_precisions(dtype, bound):
+    problem = problems.harmonic_oscillator(dtype=dtype)
+    solver = dvi.CGVI(4)
+    ctx = solver.step_context(problem.term, dtype(0), dtype(0.1), problem.y0, problem.args)
+    assert solver._picard_engine(ctx) is not None
+    sol = diffrax.diffeqsolve(
+        problem.term, solver, dtype(0), dtype(1), dtype(0.1), problem.y0, args=problem.args,
+        saveat=diffrax.SaveAt(ts=jnp.asarray(problem.ts, dtype)),
+    )
+    assert sol.ys[0].dtype == dtype
+    q_ref, _ = problem.reference(np.asarray(sol.ts, np.float64))
+    assert np.max(np.abs(np.asarray(sol.ys[0], np.float64) - q_ref)) <= bound
