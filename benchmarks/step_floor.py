@@ -59,7 +59,6 @@ def kepler_states(eccentricities):
 
 def gauss_floor(stages: int, h: float, updates: int):
     """A plain-JAX Gauss collocation step (first-order stages, fixed updates): cost only."""
-    import jax
     import jax.numpy as jnp
     from numpy.polynomial.legendre import leggauss
 
