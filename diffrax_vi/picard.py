@@ -305,11 +305,11 @@ def extrapolation(nodes: np.ndarray, ratio: Array, values: Array) -> Array:
                 if n != m:
                     poly *= np.poly1d([c[i], 1.0 - c[n]]) / (c[m] - c[n])
             coeffs[: poly.order + 1, i, m] = poly.coeffs[::-1]
-    # Horner in ρ over the products with the constant matrices
-    out = _combine(coeffs[r - 1], values)
+    # the weights as polynomials in ρ (one fused elementwise kernel), then one product
+    weights = jnp.asarray(coeffs[r - 1], values.dtype)
     for power in range(r - 2, -1, -1):
-        out = out * ratio + _combine(coeffs[power], values)
-    return out
+        weights = weights * ratio + jnp.asarray(coeffs[power], values.dtype)
+    return jnp.sum(weights[None, :, :] * values.T[:, None, :], axis=-1).T
 
 
 def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
@@ -335,18 +335,21 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
     x = h * _combine(plan.xf, f0) + _combine(plan.xg, g0) + _outer(plan.xp, p0)
     z0 = (jnp.where(live, h * kinetic.times_minv(x[:k]), 0).astype(dtype), x[k].astype(dtype))
 
+    tiny = jnp.finfo(dtype).tiny
+
     def update(c: _Carry) -> _Carry:
         (r, cont), f = residual(c.z)
-        rows = jnp.concatenate([jnp.where(live, r, 0), kinetic.times_mass(cont[None]) / h])
+        r = jnp.where(live, r, 0)
+        rows = jnp.concatenate([r, kinetic.times_mass(cont[None]) / h])
         dx = -_combine(plan.kinv, rows)
         dc = jnp.where(live, h * kinetic.times_minv(dx[:k]), 0)
-        dp = dx[k]
-        z = (c.z[0] + dc, c.z[1] + dp)
-        delta = jnp.maximum(jnp.max(jnp.abs(dc)), jnp.max(jnp.abs(dp)))
-        size = jnp.maximum(jnp.max(jnp.abs(z[0])), jnp.max(jnp.abs(z[1])))
-        size = jnp.maximum(size, jnp.finfo(dtype).tiny)
-        change = delta / size
-        fsize = jnp.maximum(jnp.max(jnp.abs(jnp.where(live, r, 0))), jnp.max(jnp.abs(cont)))
+        dz = jnp.concatenate([dc, dx[k:]])
+        z = (c.z[0] + dc, c.z[1] + dx[k])
+        # the three sizes the tests need, in one reduction (one kernel)
+        delta, size, fsize = jnp.max(jnp.abs(jnp.stack([
+            dz, jnp.concatenate([z[0], z[1][None]]), jnp.concatenate([r, cont[None]]),
+        ])), axis=(1, 2))
+        change = delta / jnp.maximum(size, tiny)
         known = jnp.isfinite(c.change) & (c.change > 0)
         rate = change / jnp.where(known, c.change, 1)
         predicted = known & (rate < 1) & (change * rate <= (1 - rate) * eps / PREDICT_MARGIN)
@@ -383,16 +386,19 @@ def step_residual(plan: PicardPlan, ctx, z) -> tuple[tuple[Array, Array], Array]
     dc, dp = z
     dtype = dc.dtype
     h, p0 = ctx.h, ctx.p0
-    q = ctx.q0 + _combine(plan.gq, dc)
-    v = _combine(plan.gv, dc) / h
+    r_nodes = plan.gq.shape[0]
+    # values, slopes and −g0·δc as one product; the weighted sums of forces and momenta as
+    # another (a product is a kernel of its own)
+    curve = _combine(np.concatenate([plan.gq, plan.gv, -plan.g0[None]]), dc)
+    q = ctx.q0 + curve[:r_nodes]
+    v = curve[r_nodes:2 * r_nodes] / h
+    c = curve[2 * r_nodes]
     p, f = _momenta_and_forces(ctx, q, v)
-    forces = h * _combine(plan.bq, f)
-    momenta = _combine(plan.bv, p)
+    sums = _combine(np.concatenate([plan.bq, plan.bv], axis=1),
+                    jnp.concatenate([h * f, p.astype(dtype)]))
     g0, gd = (jnp.asarray(a, dtype)[:, None] for a in (plan.g0, plan.gd))
-    r = dp * g0 + dp * gd + p0 * gd - forces - momenta
-    live = jnp.asarray(plan.live)[:, None]
-    r = jnp.where(live, r, dc)
-    c = -_combine(plan.g0[None], dc)[0]
+    r = dp * g0 + dp * gd + p0 * gd - sums
+    r = jnp.where(jnp.asarray(plan.live)[:, None], r, dc)
     return (r, c), f
 
 

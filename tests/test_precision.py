@@ -117,7 +117,11 @@ def test_compensated_must_be_a_bool():
         dvi.CGVI(3, compensated="yes")
 
 
-@pytest.mark.slow
+# `long`, not in CI: on the AMD EPYC machine of 2026-11-28 this failed at f536ac8, the commit
+# whose CI had passed it (first update: mean -4.9e-4, SE 6.2e-4 eps per step, within three
+# standard errors): the first update's bias depends on how XLA compiles the step for the
+# processor, so it is a measurement of the machine, not a property CI can hold.
+@pytest.mark.long
 def test_first_update_leaves_an_energy_bias_that_newton_to_round_off_removes():
     """Measured against the exact map of the same discrete Lagrangian (long double), the
     oscillator's step stopped at the first update under `ftol` adds a systematic energy

@@ -2,7 +2,7 @@
 orbits (e in [0.1, 0.6], 10 orbits each, float64), member-orbits per second and the largest
 final position error against the exact solution.
 
-    python -m benchmarks.gpu.kepler_ensemble [--members 1000 10000 100000] [--degree 6]
+    python -m benchmarks.gpu_kepler_ensemble [--members 1000 10000 100000] [--degree 6]
 """
 
 from __future__ import annotations
