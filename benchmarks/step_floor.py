@@ -3,13 +3,12 @@
 Kepler (e = 0.5, float64), time per step of a whole jitted `diffeqsolve` with constant
 steps, alone and per member-step of a `vmap` over `--members` orbits (e in [0.1, 0.6]):
 
-- `CGVI(k)` with its default root finder, which takes the Jacobian-free iteration
-  (`diffrax_vi.picard`) on this constant-mass Lagrangian;
-- the same with `FixedPointIteration(picard=False)`: the chord iteration with the Jacobian
-  formed once per step, the default before the engine;
+- `CGVI(k)` with `FixedPointIteration(ftol=0, predict=True, picard=True)`: the
+  Jacobian-free iteration (`diffrax_vi.picard`) on this constant-mass Lagrangian;
+- the same with `picard=False` (the default): the chord iteration with the Jacobian formed
+  once per step;
 - the default projected `NetworkVI` (tanh, `k + 1` neurons, Gauss–Legendre `k + 1`: the
-  same span dimension) with `FixedPointIteration(ftol=0, predict=True)`, which takes the
-  engine, and with its default `RoundoffNewton`;
+  same span dimension) with that engine, and with its default `RoundoffNewton`;
 - `diffrax.Dopri8` at `--dopri-rtol`;
 - the floor: a plain-JAX Gauss collocation step with `k + 1` stages, a fixed count of
   fixed-point updates (`--floor-updates`) and `lax.scan` over the steps (cost only: its
@@ -104,10 +103,10 @@ def step_costs(args) -> list[str]:
     orbits = args.orbits
     n = args.steps_per_orbit * orbits
     term = kepler(eccentricity=0.5).term
-    fpi = dvi.FixedPointIteration(ftol=0.0, predict=True)
+    fpi = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
     width = degree + 1
     solvers = {
-        f"CGVI({degree}) engine": dvi.CGVI(degree),
+        f"CGVI({degree}) engine": dvi.CGVI(degree, root_finder=fpi),
         f"CGVI({degree}) chord": dvi.CGVI(
             degree, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False)
         ),

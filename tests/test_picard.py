@@ -15,6 +15,7 @@ from diffrax_vi.picard import kinetic_structure, picard_solve, start_at_rest, st
 jax.config.update("jax_enable_x64", True)
 
 CHORD = FixedPointIteration(ftol=0.0, predict=True, picard=False)
+ENGINE = FixedPointIteration(ftol=0.0, predict=True, picard=True)
 
 MASS = jnp.array([[2.0, 0.3], [0.3, 1.0]])
 
@@ -79,15 +80,17 @@ def test_structure_is_read_from_the_lagrangian():
 
 def test_the_engine_is_chosen_only_where_it_applies():
     kepler = problems.kepler()
-    assert _engine(dvi.CGVI(6), kepler.term, kepler.y0, kepler.args) is not None
+    assert _engine(dvi.CGVI(6, root_finder=ENGINE), kepler.term, kepler.y0, kepler.args) is not None
     assert _engine(dvi.CGVI(6, root_finder=CHORD), kepler.term, kepler.y0, kepler.args) is None
+    assert _engine(dvi.CGVI(6), kepler.term, kepler.y0, kepler.args) is None  # opt-in
     pendulum = problems.double_pendulum()
-    assert _engine(dvi.CGVI(6), pendulum.term, pendulum.y0, pendulum.args) is None
+    solver = dvi.CGVI(6, root_finder=ENGINE)
+    assert _engine(solver, pendulum.term, pendulum.y0, pendulum.args) is None
     # the default network step keeps its Newton root finder
     network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))
     assert _engine(network, kepler.term, kepler.y0, kepler.args) is None
     fast_network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
-                                 root_finder=FixedPointIteration(ftol=0.0, predict=True))
+                                 root_finder=ENGINE)
     assert _engine(fast_network, kepler.term, kepler.y0, kepler.args) is not None
 
 
@@ -95,7 +98,7 @@ def test_the_engine_is_chosen_only_where_it_applies():
 def test_same_steps_as_the_chord_iteration(name):
     # Same equations, same root: the runs agree to round-off, and the engine took its own
     # path on every step (no restart through the chord iteration).
-    fast = _solve(dvi.CGVI(6), name)
+    fast = _solve(dvi.CGVI(6, root_finder=ENGINE), name)
     chord = _solve(dvi.CGVI(6, root_finder=CHORD), name)
     assert fast.result == diffrax.RESULTS.successful
     assert int(fast.solver_state.restarts) == 0
@@ -107,7 +110,7 @@ def test_same_steps_as_the_chord_iteration(name):
 def test_its_step_is_a_root_of_the_step_equations(name):
     # The residual of the projected step's equations as the formulation writes them, at the
     # engine's unknowns from a start at rest, is at round-off.
-    solver = dvi.CGVI(6)
+    solver = dvi.CGVI(6, root_finder=ENGINE)
     term, y0, args = _problem(name)
     ctx = solver.step_context(term, 0.0, CASES[name][1], y0, args)
     plan, structure, span = solver._picard_engine(ctx)
@@ -123,7 +126,7 @@ def test_its_step_is_a_root_of_the_step_equations(name):
 
 def test_gradients_match_finite_differences():
     term = dvi.LagrangianTerm(lambda t, q, v, k: 0.5 * v @ v - 0.5 * k * q @ q - 0.1 * q[0] ** 4)
-    solver = dvi.CGVI(4)
+    solver = dvi.CGVI(4, root_finder=ENGINE)
     assert _engine(solver, term, (jnp.ones(2), jnp.ones(2)), jnp.asarray(1.3)) is not None
 
     def final(k, q0):
@@ -146,7 +149,7 @@ def test_vmap_equals_the_loop():
     kepler = problems.kepler(eccentricity=0.5)
     q0s = jnp.stack([kepler.y0[0] * s for s in (1.0, 1.02, 0.97)])
     p0s = jnp.stack([kepler.y0[1] / np.sqrt(s) for s in (1.0, 1.02, 0.97)])
-    solver = dvi.CGVI(6)
+    solver = dvi.CGVI(6, root_finder=ENGINE)
 
     def one(q, p):
         sol = _solve(solver, "kepler", y0=(q, p), saveat=diffrax.SaveAt(t1=True))
@@ -171,7 +174,7 @@ def test_a_step_it_cannot_contract_goes_to_the_chord_iteration():
                                    saveat=diffrax.SaveAt(t1=True, solver_state=True),
                                    throw=False)
 
-    fast, chord = go(dvi.CGVI(6)), go(dvi.CGVI(6, root_finder=CHORD))
+    fast, chord = go(dvi.CGVI(6, root_finder=ENGINE)), go(dvi.CGVI(6, root_finder=CHORD))
     assert fast.result == chord.result
     assert int(fast.solver_state.restarts) > 0
     if fast.result == diffrax.RESULTS.successful:
@@ -182,7 +185,7 @@ def test_a_step_it_cannot_contract_goes_to_the_chord_iteration():
 @pytest.mark.parametrize("dtype, bound", [(jnp.float32, 1e-5), (jnp.float16, 2e-2)])
 def test_lower_precisions(dtype, bound):
     problem = problems.harmonic_oscillator(dtype=dtype)
-    solver = dvi.CGVI(4)
+    solver = dvi.CGVI(4, root_finder=ENGINE)
     ctx = solver.step_context(problem.term, dtype(0), dtype(0.1), problem.y0, problem.args)
     assert solver._picard_engine(ctx) is not None
     sol = diffrax.diffeqsolve(
