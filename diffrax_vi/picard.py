@@ -159,10 +159,9 @@ def picard_plan(span, weights) -> PicardPlan | None:
     """The `PicardPlan` of a span known when the step is traced and the same in every
     coordinate (`VariableProjection.uniform_span`); `None` where it is not, or where the
     kinetic block of its equations is singular."""
-    leaves = (span.gq, span.gv, span.g0, span.gd, span.live)
-    if any(isinstance(a, jax.core.Tracer) for a in leaves) or isinstance(weights, jax.core.Tracer):
-        return None
-    if not all(bool(np.all(np.asarray(a) == np.asarray(a)[:1])) for a in leaves):
+    from .projection import VariableProjection
+
+    if isinstance(weights, jax.core.Tracer) or not VariableProjection.uniform_span(span):
         return None
     gq, gv, g0, gd = (np.asarray(a, np.float64)[0] for a in (span.gq, span.gv, span.g0, span.gd))
     live = np.asarray(span.live)[:, 0]

@@ -195,3 +195,8 @@ def test_lower_precisions(dtype, bound):
     assert sol.ys[0].dtype == dtype
     q_ref, _ = problem.reference(np.asarray(sol.ts, np.float64))
     assert np.max(np.abs(np.asarray(sol.ys[0], np.float64) - q_ref)) <= bound
+
+
+def test_picard_must_be_a_bool():
+    with pytest.raises(TypeError, match="picard"):
+        FixedPointIteration(picard="yes")
