@@ -1,0 +1,47 @@
+"""Energy error growth of `CGVI(7)` on the oscillator (h = 0.5) over many steps, with the
+Jacobian-free engine (`FixedPointIteration(ftol=0, predict=True, picard=True)`) and with the
+chord iteration (`picard=False`, the default): largest relative energy error, that after
+2·10⁴ steps, and the growth exponent of its running maximum over the last two decades
+(Brouwer's law: 0.5).
+
+    .venv/bin/python -m benchmarks.engine_energy_growth [--steps 1000000]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--steps", type=int, default=1_000_000)
+    args = parser.parse_args()
+    import diffrax
+    import jax
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)
+    import diffrax_vi as dvi
+    from diffrax_vi import problems
+    from diffrax_vi.bench.long_run import growth_exponent
+
+    problem = problems.harmonic_oscillator()
+    h, n = 0.5, args.steps
+    e0 = float(problem.energy(0.0, *problem.y0))
+    for picard in (True, False):
+        solver = dvi.CGVI(7, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True,
+                                                                   picard=picard))
+        sol = diffrax.diffeqsolve(problem.term, solver, 0.0, n * h, h, problem.y0,
+                                  args=problem.args, max_steps=n,
+                                  saveat=diffrax.SaveAt(steps=True))
+        energy = jax.vmap(lambda q, p: problem.energy(0.0, q, p))(sol.ys[0], sol.ys[1])
+        error = np.abs(np.asarray(energy) - e0) / abs(e0)
+        envelope = np.maximum.accumulate(error)
+        at = min(20_000, n) - 1
+        print(f"picard={picard!s:5s} steps={n}: max {error.max():.2e}, after {at + 1} steps "
+              f"{envelope[at]:.2e}, growth exponent "
+              f"{growth_exponent(np.asarray(sol.ts), envelope)}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
