@@ -45,8 +45,9 @@ docs: $(STAMP) /usr/bin/chromium
 /usr/bin/chromium:
 	apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium
 
+# Time per step against Dopri8 and the hardware's floor (docs/benchmarks.md).
 bench: $(STAMP)
-	$(BIN)/python -m benchmarks.step_cost
+	$(BIN)/python -m benchmarks.step_floor --fresh 0 --repeats 5
 
 # Work-precision, long-time energy and stability sweep (docs/benchmarks.md); results and
 # figures go to benchmarks/results (quick) or benchmarks/results-full (full, hours).

@@ -23,7 +23,7 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     import diffrax_vi as dvi
     from diffrax_vi import problems
-    from diffrax_vi.bench.long_run import growth_exponent
+    from diffrax_vi.bench import growth_exponent
 
     problem = problems.harmonic_oscillator()
     h, n = 0.5, args.steps

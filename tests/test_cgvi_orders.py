@@ -2,7 +2,7 @@
 
 The error of each run is compared with the same run in exact arithmetic: the one-step map of
 the cGVI on the oscillator, computed in extended precision from the Galerkin action
-(`diffrax_vi.spectral`). `benchmarks/cgvi_orders.py` prints the table.
+(`diffrax_vi.spectral`). The table is on the studies page.
 
 Step sizes: float64 runs of `CGVI(s)` carry a systematic rounding drift of the phase of
 about `1e-15 · ωh` per step. Each degree is measured at the smallest `ωh2` (grid 0.01) at
@@ -30,7 +30,7 @@ from diffrax_vi import problems, spectral  # noqa: E402
 N1, N2 = 160, 200  # steps over the same span
 OMEGA = mpmath.sqrt(mpmath.mpf(1) / 2)  # the oscillator's frequency
 AMPLITUDE = mpmath.mpf("0.5")
-# ωh2 per degree, by the rule in the module docstring (benchmarks/cgvi_orders.py).
+# ωh2 per degree, by the rule of the cgvi_orders study (docs/studies.md).
 DESIGN = {1: 0.01, 2: 0.01, 3: 0.08, 4: 0.28, 5: 0.65, 6: 1.18, 7: 1.86, 8: 2.66, 9: 3.56,
           10: 4.55, 11: 5.62, 12: 6.75}
 ASYMPTOTIC = range(1, 10)  # degrees whose design steps are in the asymptotic regime

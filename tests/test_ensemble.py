@@ -18,7 +18,7 @@ import diffrax_vi as dvi
 
 TERM = dvi.LagrangianTerm(lambda t, q, v, k: 0.5 * v @ v - 0.5 * k * q @ q)
 # The helper does not care which solver runs; the polynomial cGVI compiles fastest. (Batched
-# network solves are checked in tests/test_solver.py and timed in benchmarks/speed.py.)
+# network solves are checked in tests/test_solver.py.)
 SOLVER = dvi.CGVI(3)
 
 

@@ -487,7 +487,7 @@ def test_refit_iterations_refits_only_after_quick_solves(ho_tanh_all):
 def test_growing_damping_rescues_a_stalled_step():
     """A step that stalled under a fixed Levenberg–Marquardt damping converges once the
     damping grows after failed line searches (`stall_damping`). The case is a real one found
-    by a search over seeds (first with `benchmarks/seed_substeps.py`): GELU width 10, labels
+    by a search over seeds: GELU width 10, labels
     from 30 midpoint sub-steps, the oscillator at h = 0.1, whose step at t = 0.7 stalled at
     residual 3.0e-8 after 5 iterations (paths depend on rounding: if the fixed-damping run
     stops failing after a change of numerics, find another such step; with the quadrature

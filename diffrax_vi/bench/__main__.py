@@ -10,12 +10,7 @@ Commands:
   (default the reference's two; `--solvers projection` runs the projected step,
   `VariableProjection()`);
 - `report`: rebuild `report.md` and the figures from the CSVs in `--out`;
-- `all`: the three studies, then the report;
-- `long-run`: final error and energy error against wall time over long spans, variational
-  solvers against classical peers (`diffrax_vi.bench.long_run`; `--out` defaults to
-  `benchmarks/results/long_run`, `--solvers` picks the variational solvers by substring);
-- `seed-quality`: the OGA seed on its own, every configuration (`--quick`: the grid1d and
-  angular dictionaries), written to `seed_quality.csv` and `seed_quality.md`.
+- `all`: the three studies, then the report.
 
 Where the cases run (`diffrax_vi.bench.executor`): by default on an embedded Dask
 `LocalCluster` of one worker per CPU (`--jobs N`: N workers; `--jobs 1`: in this process, no
@@ -41,7 +36,6 @@ CSV = {
     "work-precision": "work_precision.csv",
     "energy": "long_time_energy.csv",
     "stability": "stability.csv",
-    "seed-quality": "seed_quality.csv",
 }
 
 
@@ -209,40 +203,6 @@ def run_stability(args) -> None:
     print(stability_table(rows))
 
 
-def run_seed_quality(args) -> None:
-    """The OGA seed-quality study (`seed_quality`): the grid (`--quick`: the grid1d and
-    angular dictionaries) and the presets, in every precision; CSV and summary in `--out`."""
-    import dataclasses
-
-    from . import seed_quality as sq
-    from .sweeps import SeedQualitySweep
-
-    labels = [c[0] for c in sq.study_configs() if args.full or c[1] in ("grid1d", "angular")]
-    cases = SeedQualitySweep.cases(sq.PRECISIONS, labels)
-    bar = _progress(len(cases), "seed-quality", not args.no_progress)
-    columns = [f.name for f in dataclasses.fields(sq.SeedCase)]
-    rows = _sweep(args, "seed-quality", SeedQualitySweep(), cases, bar, columns=columns)
-    if bar is not None:
-        bar.close()
-    text = sq.summary_markdown([sq.SeedCase(**r) for r in rows])
-    with open(os.path.join(args.out, "seed_quality.md"), "w") as f:
-        f.write(text)
-    print(text)
-
-
-def run_long_run(args, argv=None) -> None:
-    """The long-run study (`diffrax_vi.bench.long_run`), with its own report in `--out`."""
-    from . import long_run
-
-    if args.out is None:
-        args.out = long_run.DEFAULT_OUT
-    command = "python -m diffrax_vi.bench " + " ".join(sys.argv[1:] if argv is None else argv)
-    start = time.perf_counter()
-    long_run.cli(args, command)
-    print(f"long-run: {time.perf_counter() - start:.0f} s; report in {args.out}/report.md",
-          file=sys.stderr)
-
-
 def write_report(out: str, command: str = "", elapsed: float | None = None) -> str:
     """Assemble `report.md` and the PNG figures from the CSVs found in `out` (`elapsed`: the
     run's wall time in seconds, stated under the command)."""
@@ -324,21 +284,17 @@ def main(argv=None) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("command", choices=["work-precision", "energy", "stability", "report",
-                                            "all", "long-run", "seed-quality"])
+                                            "all"])
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true", help="the quick grids (default)")
     mode.add_argument("--full", action="store_true", help="the full grids (hours)")
     parser.add_argument("--out", default=None,
-                        help="output folder (default benchmarks/results; long-run: "
-                             "benchmarks/results/long_run)")
+                        help="output folder (default benchmarks/results)")
     parser.add_argument("--problems", nargs="*", help="subset of problems")
     parser.add_argument("--solvers", nargs="*",
                         help="substrings of solver names to keep (stability: of "
                              "LevenbergMarquardt, RegularisedNewton, projection; default the "
                              "first two)")
-    parser.add_argument("--spans", type=int, nargs="+", default=None,
-                        help="long-run: spans in periods for every problem, instead of the "
-                             "quick (100) or full (10^3 to 10^5) ones")
     parser.add_argument("--repeats", type=int, default=None,
                         help="timing repeats after compilation (quick 2, full 5)")
     parser.add_argument("--long-steps", type=_long_steps, default=None,
@@ -360,9 +316,6 @@ def main(argv=None) -> None:
                              "only the others")
     args = parser.parse_args(argv)
     args.quick = not args.full
-    if args.command == "long-run":
-        run_long_run(args, argv)
-        return
     if args.out is None:
         args.out = "benchmarks/results"
     if args.repeats is None:
@@ -374,7 +327,7 @@ def main(argv=None) -> None:
     start = time.perf_counter()
     todo = ["work-precision", "energy", "stability"] if args.command == "all" else [args.command]
     runners = {"work-precision": run_work_precision, "energy": run_energy,
-               "stability": run_stability, "seed-quality": run_seed_quality}
+               "stability": run_stability}
     if args.jobs is not None and args.jobs < 1:
         raise SystemExit(f"--jobs must be at least 1, got {args.jobs}")
     args.executors = _Executors(args)

@@ -43,6 +43,7 @@ __all__ = [
     "Entry",
     "work_precision",
     "long_time_energy",
+    "growth_exponent",
     "relative_error",
     "write_rows",
     "read_rows",
@@ -164,6 +165,26 @@ def energy_errors(problem: Problem, energy, ts, qs, ps) -> np.ndarray:
     q0, p0 = (jnp.asarray(x, jnp.float64) for x in problem.y0)
     h0 = float(problem.energy(jnp.asarray(problem.t0, jnp.float64), q0, p0))
     return np.abs(h - h0) / (abs(h0) if h0 != 0 else 1.0)
+
+
+def growth_exponent(ts: np.ndarray, envelope: np.ndarray, t0: float = 0.0,
+                    decades: float = 2.0) -> float | None:
+    """Log-log slope of the running maximum of the energy error over the last `decades`
+    decades of time, fitted on points spread evenly in `log t` (Brouwer's law: 0.5).
+    `None` where fewer than 8 distinct points fall in that window or none near its start."""
+    tau = np.asarray(ts, np.float64) - t0
+    env = np.asarray(envelope, np.float64)
+    keep = (tau > 0) & np.isfinite(env)
+    tau, env = tau[keep], env[keep]
+    start = tau[-1] * 10.0**-decades if tau.size else 0.0
+    if tau.size < 8 or tau[0] > 1.5 * start:  # the data must cover the whole window
+        return None
+    grid = np.geomspace(start, tau[-1], 40)
+    index = np.unique(np.clip(np.searchsorted(tau, grid, side="left"), 0, tau.size - 1))
+    x, y = tau[index], env[index]
+    if index.size < 8 or np.any(y <= 0):
+        return None
+    return float(np.polyfit(np.log(x), np.log(y), 1)[0])
 
 
 def timed(fn, *args):

@@ -1,11 +1,10 @@
-"""The command line's studies as sweeps of `executor.run_sweep`: work-precision, long-time
-energy and the OGA seed-quality study (the stability sweep's is `stability.StabilitySweep`).
+"""The command line's studies as sweeps of `executor.run_sweep`: work-precision and long-time
+energy (the stability sweep's is `stability.StabilitySweep`).
 
-A case names its solver or configuration by its label, not by the object: the worker builds
-the entry from `suites` (or the configuration from `seed_quality`) itself, so that a case is
-a few strings and numbers that travel to any worker. A sweep's configuration key is the set of
-cases that share one compiled program (one entry on one problem; one OGA configuration in
-one precision), so a worker compiles it once.
+A case names its solver by its label, not by the object: the worker builds the entry from
+`suites` itself, so that a case is a few strings and numbers that travel to any worker. A
+sweep's configuration key is the set of cases that share one compiled program (one entry on
+one problem), so a worker compiles it once.
 """
 
 from __future__ import annotations
@@ -21,8 +20,6 @@ __all__ = [
     "WorkPrecisionSweep",
     "EnergyCase",
     "EnergySweep",
-    "SeedCaseSpec",
-    "SeedQualitySweep",
     "energy_runs",
 ]
 
@@ -169,50 +166,3 @@ class EnergySweep:
         long_time_energy(problem, [(entry, c.value) for c in cases], on_rows=stream,
                          adaptive_max_steps=self.adaptive_max_steps)
 
-
-# -- OGA seed quality ---------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True)
-class SeedCaseSpec:
-    """One configuration of the seed-quality study in one precision: `group` `"grid"`
-    (`config` a label of `seed_quality.study_configs()`) or `"preset"` (a key of
-    `seed_quality.PRESETS`). It holds every activation and target (one compilation)."""
-
-    group: str
-    config: str
-    precision: str
-
-
-@dataclasses.dataclass(frozen=True)
-class SeedQualitySweep:
-    """`seed_quality`'s study, a case per configuration and precision; its rows are the
-    fields of `seed_quality.SeedCase`."""
-
-    name: str = "seed-quality"
-
-    def case_id(self, case: SeedCaseSpec) -> str:
-        return f"{case.group}|{case.config}|{case.precision}"
-
-    def config_key(self, case: SeedCaseSpec) -> tuple:
-        return (case.group, case.config, case.precision)
-
-    @staticmethod
-    def cases(precisions: Sequence[str], configs: Sequence[str] | None = None,
-              presets: bool = True) -> list[SeedCaseSpec]:
-        """The grid's configurations (all, or the labels in `configs`), then the presets."""
-        from . import seed_quality as sq
-
-        labels = [c[0] for c in sq.study_configs()] if configs is None else list(configs)
-        jobs = [("grid", label) for label in labels]
-        if presets:
-            jobs += [("preset", name) for name in sq.PRESETS]
-        return [SeedCaseSpec(g, c, p) for g, c in jobs for p in precisions]
-
-    def run(self, cases: Sequence[SeedCaseSpec], cache: dict, emit: Emit) -> None:
-        import jax
-
-        from .seed_quality import run_case
-
-        for case in cases:
-            seeds = run_case(case.group, case.config, case.precision)
-            jax.clear_caches()  # hundreds of compilations: keep the worker's memory bounded
-            emit(self.case_id(case), [dataclasses.asdict(s) for s in seeds])
