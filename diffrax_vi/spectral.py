@@ -15,7 +15,7 @@ Two error models (`model=`), both as functions of `x = dt / timescale`:
   Galerkin end values converge like the square of that. The estimate is `8 x ρ^(-2s)`: the
   rate follows from analyticity, the factor `8 x` is set so that the estimate bounds the
   oscillator's exact error below and the errors measured on Kepler orbits
-  (`docs/benchmarks.md`).
+  (`docs/studies.md`).
 - `"oscillator"`: the exact one-step error of `CGVI(s)` on the harmonic oscillator with
   `ω = 1/timescale`, computed in extended precision from the Galerkin action. Exact for
   linear oscillations, whose error falls faster than geometrically; it underestimates the

@@ -301,11 +301,11 @@ def test_pages_render_in_chromium(served, page, expected):
     screenshot_is_a_page(shot)
 
 
-def test_readme_module_table_covers_the_package():
-    """Every module of the package is named in the README's module table (a folder named
-    there covers the modules in it), and every path the table names exists."""
+def test_layout_module_table_covers_the_package():
+    """Every module of the package is named in the module table of `docs/layout.md` (a
+    folder named there covers the modules in it), and every path the table names exists."""
     root = Path(__file__).resolve().parents[1]
-    text = (root / "README.md").read_text(encoding="utf-8")
+    text = (root / "docs" / "layout.md").read_text(encoding="utf-8")
     cited = set(re.findall(r"`(diffrax_vi/[\w/.]*)`", text))
     assert cited, "the scan finds the table"
     missing = []
@@ -317,5 +317,5 @@ def test_readme_module_table_covers_the_package():
             c.endswith("/") and name.startswith(c) for c in cited
         ):
             missing.append(name)
-    assert missing == [], f"modules missing from the README's module table: {missing}"
+    assert missing == [], f"modules missing from the module table of docs/layout.md: {missing}"
     assert [c for c in cited if not (root / c).exists()] == []
