@@ -1,5 +1,5 @@
 """sympy → JAX compilation and the sympy derivative kernels of the network ansätze
-(`diffrax_vi.symbolic.codegen`)."""
+(`diffrax_vi.codegen`, `diffrax_vi.ansatz.sympy_kernels`)."""
 
 
 import jax
@@ -10,12 +10,11 @@ import sympy
 
 import diffrax_vi as dvi
 from diffrax_vi.ansatz.symmetry import MirrorPairs, SharedMirrorPairs
-from diffrax_vi.symbolic import (
+from diffrax_vi.ansatz.sympy_kernels import symbolic_dense_evaluate, symbolic_shallow_evaluate
+from diffrax_vi.codegen import (
     compile_exprs,
     curve_function,
     symbolic_curve_evaluate,
-    symbolic_dense_evaluate,
-    symbolic_shallow_evaluate,
     sympy_activation,
 )
 

@@ -66,7 +66,7 @@ class DenseNetBasis(AbstractBasis):
                 f"derivatives must be 'autodiff' or 'sympy', got {self.derivatives!r}"
             )
         if self.derivatives == "sympy":
-            from ..symbolic.codegen import sympy_activation  # sympy only when asked for
+            from ..codegen import sympy_activation  # sympy only when asked for
 
             sympy_activation(self.activation)
 
@@ -112,7 +112,7 @@ class DenseNetBasis(AbstractBasis):
 
     def evaluate(self, theta, tau):
         if self.derivatives == "sympy":
-            from ..symbolic.codegen import symbolic_dense_evaluate
+            from .sympy_kernels import symbolic_dense_evaluate
 
             return symbolic_dense_evaluate(self)(theta, tau)
         gamma = self.split(theta)[4]

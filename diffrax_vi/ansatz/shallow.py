@@ -164,7 +164,7 @@ class ShallowNetBasis(AbstractBasis):
         if self.derivatives not in ("autodiff", "sympy"):
             raise ValueError(f"derivatives must be 'autodiff' or 'sympy', got {self.derivatives!r}")
         if self.derivatives == "sympy":
-            from ..symbolic.codegen import sympy_activation  # sympy only when asked for
+            from ..codegen import sympy_activation  # sympy only when asked for
 
             sympy_activation(self.activation)  # refuses an activation with no sympy form
         if self.mirrored and self.width % 2:
@@ -222,7 +222,7 @@ class ShallowNetBasis(AbstractBasis):
 
     def evaluate(self, theta, tau):
         if self.derivatives == "sympy":
-            from ..symbolic.codegen import symbolic_shallow_evaluate
+            from .sympy_kernels import symbolic_shallow_evaluate
 
             return symbolic_shallow_evaluate(self)(theta, tau)
         alpha, w, beta = self.split(theta)

@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import sympy
 from jaxtyping import Array, PyTree
 
+from ..codegen import compile_exprs
 from ..linalg import solve
 from ..terms import LagrangianTerm
 from ..validation import check_state
-from .codegen import compile_exprs
 
 __all__ = ["SympyLagrangianTerm", "sympy_lagrangian_term"]
 
@@ -292,6 +292,49 @@ def _build(expr, qs, vs, t, ps, cse) -> tuple[_Kernels, bool, bool]:
     return kernels, quadratic, degenerate
 
 
+def _declared_symbols(expr, q_symbols, v_symbols, t, params):
+    """The coordinates, velocities, parameters and time symbol of `expr`, each declared once
+    and covering every free symbol of `expr`."""
+    free = expr.free_symbols
+    qs = tuple(_resolve(s, free, "q_symbols") for s in _names(q_symbols, "q_symbols"))
+    vs = tuple(_resolve(s, free, "v_symbols") for s in _names(v_symbols, "v_symbols"))
+    ps = tuple(_resolve(s, free, "params") for s in _names(params, "params"))
+    ts = None if t is None else _resolve(t, free, "t")
+    if len(qs) != len(vs):
+        raise ValueError(
+            f"q_symbols and v_symbols must have the same length; got {len(qs)} coordinates "
+            f"{qs} and {len(vs)} velocities {vs}"
+        )
+    if not qs:
+        raise ValueError("the Lagrangian needs at least one coordinate")
+
+    roles: dict[sympy.Symbol, str] = {}
+    declared = [(s, "a coordinate") for s in qs] + [(s, "a velocity") for s in vs]
+    declared += [(s, "a parameter") for s in ps]
+    if ts is not None:
+        declared.append((ts, "the time"))
+    for symbol, role in declared:
+        if symbol in roles:
+            raise ValueError(
+                f"the symbol {symbol} is declared twice (as {roles[symbol]} and as {role})"
+            )
+        roles[symbol] = role
+    names = [p.name for p in ps]
+    for name in names:
+        if names.count(name) > 1:
+            raise ValueError(f"two parameters are named {name!r}; args is keyed by name")
+
+    unknown = sorted(free - set(roles), key=str)
+    if unknown:
+        listed = ", ".join(str(s) for s in unknown)
+        raise ValueError(
+            f"the Lagrangian contains the symbol(s) {listed}, which are neither coordinates "
+            f"{qs}, velocities {vs}, the time ({ts}) nor parameters {ps}; declare "
+            "parameters with params=... and pass their values through args"
+        )
+    return qs, vs, ps, ts
+
+
 def sympy_lagrangian_term(
     lagrangian: Any,
     q_symbols: Any,
@@ -340,44 +383,9 @@ def sympy_lagrangian_term(
     expr = sympy.sympify(lagrangian)
     if not isinstance(expr, sympy.Expr):
         raise TypeError(f"the Lagrangian must be a scalar sympy expression, got {expr!r}")
-    free = expr.free_symbols
 
-    qs = tuple(_resolve(s, free, "q_symbols") for s in _names(q_symbols, "q_symbols"))
-    vs = tuple(_resolve(s, free, "v_symbols") for s in _names(v_symbols, "v_symbols"))
-    ps = tuple(_resolve(s, free, "params") for s in _names(params, "params"))
-    ts = None if t is None else _resolve(t, free, "t")
-    if len(qs) != len(vs):
-        raise ValueError(
-            f"q_symbols and v_symbols must have the same length; got {len(qs)} coordinates "
-            f"{qs} and {len(vs)} velocities {vs}"
-        )
-    if not qs:
-        raise ValueError("the Lagrangian needs at least one coordinate")
-
-    roles: dict[sympy.Symbol, str] = {}
-    declared = [(s, "a coordinate") for s in qs] + [(s, "a velocity") for s in vs]
-    declared += [(s, "a parameter") for s in ps]
-    if ts is not None:
-        declared.append((ts, "the time"))
-    for symbol, role in declared:
-        if symbol in roles:
-            raise ValueError(
-                f"the symbol {symbol} is declared twice (as {roles[symbol]} and as {role})"
-            )
-        roles[symbol] = role
+    qs, vs, ps, ts = _declared_symbols(expr, q_symbols, v_symbols, t, params)
     names = [p.name for p in ps]
-    for name in names:
-        if names.count(name) > 1:
-            raise ValueError(f"two parameters are named {name!r}; args is keyed by name")
-
-    unknown = sorted(free - set(roles), key=str)
-    if unknown:
-        listed = ", ".join(str(s) for s in unknown)
-        raise ValueError(
-            f"the Lagrangian contains the symbol(s) {listed}, which are neither coordinates "
-            f"{qs}, velocities {vs}, the time ({ts}) nor parameters {ps}; declare "
-            "parameters with params=... and pass their values through args"
-        )
     if velocity is not None and not callable(velocity):
         raise TypeError(f"velocity must be callable or None, got {type(velocity).__name__}")
     if legendre_iterations is not None and (

@@ -1,6 +1,4 @@
-"""sympy expressions compiled to JAX, and closed-form derivative kernels for ansätze.
-
-Two layers:
+"""sympy expressions compiled to JAX, and closed-form derivative kernels of a curve.
 
 - `compile_exprs` turns sympy expressions into one JAX function (common subexpressions
   shared, every constant in the dtype of the inputs), compiled once per expression set.
@@ -8,12 +6,15 @@ Two layers:
   function whose derivatives are the sympy ones: the tangent of `q` is `Σ_k ∂q/∂p_k dp_k +
   q' dτ`, the tangent of `q' = ∂q/∂τ` is `Σ_k ∂q'/∂p_k dp_k + q'' dτ`; the parameter
   gradients `∂q/∂p_k`, `∂q'/∂p_k` are compiled closed forms that JAX differentiates further
-  (the Newton Jacobian). These are the kernels of the reference's symbolic bases: `q`, `q'`,
-  `∂q/∂θ`, `∂q'/∂θ`. `symbolic_shallow_evaluate`, `symbolic_dense_evaluate` and
-  `symbolic_curve_evaluate` wrap them as `evaluate(θ, τ)` of an ansatz.
+  (the Newton Jacobian). `symbolic_curve_evaluate` wraps them as `evaluate(θ, τ)` of an
+  ansatz.
+- `sympy_activation` gives the sympy form of a package activation.
 
-Derivatives of non-smooth functions (`Abs`, `Max`, `Piecewise`, `sign`, `Heaviside`) are taken
-almost everywhere, as JAX does: `DiracDelta` evaluates to zero.
+This module sits below the ansätze (their sympy derivative backend, in
+`diffrax_vi.ansatz.sympy_kernels`) and below `diffrax_vi.symbolic` (terms and ansätze written
+with sympy); it depends on the activations alone. Derivatives of non-smooth functions (`Abs`,
+`Max`, `Piecewise`, `sign`, `Heaviside`) are taken almost everywhere, as JAX does: `DiracDelta`
+evaluates to zero.
 """
 
 from __future__ import annotations
@@ -32,19 +33,15 @@ from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array
 from sympy.codegen.cfunctions import expm1, log1p
 
-from .. import activations as _act
-from ..precision import floating_dtype
+from . import activations as _act
+from .precision import floating_dtype
 
 __all__ = [
     "CurveKernels",
     "compile_exprs",
     "curve_function",
     "curve_kernels",
-    "dense_expression",
-    "shallow_neuron_expression",
     "symbolic_curve_evaluate",
-    "symbolic_dense_evaluate",
-    "symbolic_shallow_evaluate",
     "sympy_activation",
 ]
 
@@ -519,73 +516,3 @@ def symbolic_curve_evaluate(
         return f(*theta, jnp.asarray(tau, theta.dtype))
 
     return evaluate
-
-
-# ---------------------------------------------------------------------------------------------
-# Network ansätze
-# ---------------------------------------------------------------------------------------------
-
-
-_TAU = sympy.Symbol("tau", real=True)
-
-
-@functools.lru_cache(maxsize=64)
-def shallow_neuron_expression(activation: Callable) -> tuple[sympy.Expr, tuple[sympy.Symbol, ...]]:
-    """One neuron's contribution `α σ(w τ + β)` and its parameter symbols `(α, w, β)`; the
-    curve symbol is `τ` (`sympy.Symbol("tau", real=True)`)."""
-    sigma = sympy_activation(activation)
-    alpha, w, beta = sympy.symbols("alpha w beta", real=True)
-    return alpha * sigma(w * _TAU + beta), (alpha, w, beta)
-
-
-def symbolic_shallow_evaluate(basis) -> Callable[[Array, Array], Array]:
-    """`evaluate(θ, τ)` of a `ShallowNetBasis` with sympy derivatives.
-
-    The neuron `α σ(w τ + β)` is differentiated by sympy and compiled once per activation; the
-    network sums it over the neurons of `basis.split(θ)` (mirrored pairs are expanded there,
-    and JAX differentiates through that map). `τ` is a scalar.
-    """
-    expr, params = shallow_neuron_expression(basis.activation)
-    network = curve_function(expr, _TAU, params, reduce=True)
-
-    def evaluate(theta: Array, tau) -> Array:
-        alpha, w, beta = basis.split(theta)
-        return network(alpha, w, beta, jnp.asarray(tau, theta.dtype))
-
-    return evaluate
-
-
-@functools.lru_cache(maxsize=64)
-def dense_expression(
-    activation: Callable, width1: int, width2: int
-) -> tuple[sympy.Expr, tuple[sympy.Symbol, ...]]:
-    """The curve `Σ_k γ_k σ(Σ_i A_ki σ(a_i τ + e_i) + g_k)` of a two-hidden-layer network and
-    its `2S₁ + S₂S₁ + 2S₂` parameter symbols in `DenseNetBasis`'s flat order
-    `[a | e | A column-major | g | γ]`; the curve symbol is `τ`."""
-    sigma = sympy_activation(activation)
-    s1, s2 = width1, width2
-    a = sympy.symbols(f"a0:{s1}", real=True)
-    e = sympy.symbols(f"e0:{s1}", real=True)
-    big_a = [[sympy.Symbol(f"A{k}_{i}", real=True) for i in range(s1)] for k in range(s2)]
-    g = sympy.symbols(f"g0:{s2}", real=True)
-    gamma = sympy.symbols(f"gamma0:{s2}", real=True)
-    first = [sigma(a[i] * _TAU + e[i]) for i in range(s1)]
-    expr = sympy.Add(
-        *(
-            gamma[k] * sigma(sympy.Add(*(big_a[k][i] * first[i] for i in range(s1))) + g[k])
-            for k in range(s2)
-        )
-    )
-    columns = tuple(big_a[k][i] for i in range(s1) for k in range(s2))
-    return expr, (*a, *e, *columns, *g, *gamma)
-
-
-def symbolic_dense_evaluate(basis) -> Callable[[Array, Array], Array]:
-    """`evaluate(θ, τ)` of a `DenseNetBasis` with sympy derivatives (`θ` of shape `(NP, D)`).
-
-    The whole curve of one coordinate is one expression in its `NP` parameters, differentiated
-    and compiled once per `(activation, width1, width2)`; sympy's time grows quickly with the
-    widths (about a second for `3 × 3`).
-    """
-    expr, params = dense_expression(basis.activation, basis.width1, basis.width2)
-    return symbolic_curve_evaluate(expr, _TAU, params)
