@@ -29,7 +29,7 @@ def main() -> None:
 
     jax.config.update("jax_enable_x64", True)
     import diffrax_vi as dvi
-    from diffrax_vi.problems.kepler import kepler, solve_kepler_equation
+    from diffrax_vi.problems import kepler, solve_kepler_equation
 
     print(f"# jax {jax.__version__}, {jax.devices()[0].device_kind}", flush=True)
     term = kepler().term

@@ -97,7 +97,7 @@ def step_costs(args) -> list[str]:
     import jax.numpy as jnp
 
     import diffrax_vi as dvi
-    from diffrax_vi.problems.kepler import kepler
+    from diffrax_vi.problems import kepler
 
     degree, h = args.degree, 2 * math.pi / args.steps_per_orbit
     orbits = args.orbits
@@ -135,7 +135,7 @@ def step_costs(args) -> list[str]:
             return sol.ys[0][-1], sol.stats["num_steps"]
         return run
 
-    from diffrax_vi.problems.kepler import solve_kepler_equation
+    from diffrax_vi.problems import solve_kepler_equation
 
     anomaly = solve_kepler_equation(np.array([n * h]), 0.5)[0]
     q_exact = np.array([math.cos(anomaly) - 0.5, math.sqrt(0.75) * math.sin(anomaly)])

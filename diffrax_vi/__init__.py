@@ -1,9 +1,9 @@
 """diffrax_vi: neural-network variational integrators for Lagrangian mechanics, as diffrax solvers.
 
-float64 needs `jax.config.update("jax_enable_x64", True)`; the library never flips it.
+The public API is `__all__` (also what `dir(diffrax_vi)` lists); the subpackages `oga` and
+`problems` have their own. float64 needs `jax.config.update("jax_enable_x64", True)`; the
+library never flips it.
 """
-
-import types as _types
 
 from . import oga as oga
 from . import problems as problems
@@ -18,6 +18,9 @@ from .ansatz import AbstractBasis as AbstractBasis
 from .ansatz import DenseNetBasis as DenseNetBasis
 from .ansatz import LagrangeBasis as LagrangeBasis
 from .ansatz import ShallowNetBasis as ShallowNetBasis
+from .ansatz.symmetry import MirrorPairs as MirrorPairs
+from .ansatz.symmetry import NoSymmetry as NoSymmetry
+from .ansatz.symmetry import SharedMirrorPairs as SharedMirrorPairs
 from .ensemble import ensemble as ensemble
 from .ensemble import ensemble_gather as ensemble_gather
 from .ensemble import ensemble_mesh as ensemble_mesh
@@ -36,29 +39,7 @@ from .methods import ShallowNetAutodiffReversible as ShallowNetAutodiffReversibl
 from .methods import ShallowNetReversible as ShallowNetReversible
 from .nonlinear import LevenbergMarquardt as LevenbergMarquardt
 from .nonlinear import RegularisedNewton as RegularisedNewton
-from .oga import OGA as OGA
-from .oga import AngularGrid as AngularGrid
-from .oga import BiasGrid1d as BiasGrid1d
-from .oga import IncrementalQR as IncrementalQR
-from .oga import MirrorPairs as MirrorPairs
-from .oga import NormalEquationsFit as NormalEquationsFit
-from .oga import NormalizedProjection as NormalizedProjection
-from .oga import NoSymmetry as NoSymmetry
-from .oga import OGA1d as OGA1d
-from .oga import OGA1dNormalEquations as OGA1dNormalEquations
-from .oga import OGA1dNormalized as OGA1dNormalized
-from .oga import OGA1dStable as OGA1dStable
-from .oga import OGA2d as OGA2d
-from .oga import OGASphere as OGASphere
-from .oga import OrthogonalProjection as OrthogonalProjection
-from .oga import PivotedQR as PivotedQR
-from .oga import RawProjection as RawProjection
-from .oga import Refined as Refined
-from .oga import SharedMirrorPairs as SharedMirrorPairs
-from .oga import TruncatedSVD as TruncatedSVD
-from .oga import WeightBiasGrid2d as WeightBiasGrid2d
-from .oga import WeightedQR as WeightedQR
-from .oga import oga_fit as oga_fit
+from .parameter_seed import FitProblem as FitProblem
 from .projection import FirstSeedLayer as FirstSeedLayer
 from .projection import RoundoffNewton as RoundoffNewton
 from .projection import SeedLayer as SeedLayer
@@ -86,27 +67,104 @@ from .solver_state import NetworkVIState as NetworkVIState
 from .spectral import SpectralCGVI as SpectralCGVI
 from .spectral import spectral_degree as spectral_degree
 from .spectral import spectral_step_error as spectral_step_error
+from .step_hints import AbstractStepRootFinder as AbstractStepRootFinder
+from .step_hints import StepHints as StepHints
 from .step_size import RetryFailedSteps as RetryFailedSteps
 from .terms import IODETerm as IODETerm
 from .terms import LagrangianTerm as LagrangianTerm
 
 __version__ = "0.1.0.dev0"
 
-# The public names: those re-exported above, the public subpackages, and the symbolic pieces
-# loaded on first use (`_LAZY`). Submodules bound here by their import are not among them.
-_PUBLIC_MODULES = ("oga", "problems")
-_PUBLIC = frozenset(
-    name
-    for name, value in globals().items()
-    if not name.startswith("_")
-    and (not isinstance(value, _types.ModuleType) or name in _PUBLIC_MODULES)
-)
+__all__ = [
+    # Solver, method constructors, step-size control
+    "NetworkVI",
+    "NetworkVIState",
+    "NetworkInterpolation",
+    "AllParameterFallbackWarning",
+    "CGVI",
+    "DenseNet",
+    "ShallowNet",
+    "ShallowNetAutodiff",
+    "ShallowNetAutodiffReversible",
+    "ShallowNetReversible",
+    "VISE",
+    "SpectralCGVI",
+    "spectral_degree",
+    "spectral_step_error",
+    "RetryFailedSteps",
+    # Terms and quadrature
+    "LagrangianTerm",
+    "IODETerm",
+    "SympyLagrangianTerm",
+    "sympy_lagrangian_term",
+    "GaussLegendre",
+    "Simpson",
+    # Ansätze, their symmetries, activations
+    "AbstractBasis",
+    "ShallowNetBasis",
+    "DenseNetBasis",
+    "LagrangeBasis",
+    "SymbolicAnsatz",
+    "VISEBasis",
+    "NoSymmetry",
+    "MirrorPairs",
+    "SharedMirrorPairs",
+    "tanh",
+    "sigmoid",
+    "sin",
+    "gelu",
+    "gelu_exact",
+    "elu",
+    "relu_k",
+    # sympy compiled to JAX
+    "compile_exprs",
+    "sympy_activation",
+    # Formulations
+    "AbstractFormulation",
+    "FreeEndpoints",
+    "InterpolatingEndpoints",
+    "VariableProjection",
+    "UniformLayer",
+    "FirstSeedLayer",
+    "SeedLayer",
+    # Root finders
+    "StepHints",
+    "AbstractStepRootFinder",
+    "LevenbergMarquardt",
+    "RegularisedNewton",
+    "RoundoffNewton",
+    "FixedPointIteration",
+    # Seeds
+    "SeedPolicy",
+    "AbstractInitialTrajectory",
+    "IntegratorExtrapolation",
+    "HermiteExtrapolation",
+    "NoExtrapolation",
+    "PreviousStep",
+    "AbstractParameterSeed",
+    "FitProblem",
+    "LSGD",
+    "TrainingMethod",
+    "LeastSquaresFit",
+    "InitialWeights",
+    "TrajectoryFit",
+    # Failures
+    "failure_kind",
+    "describe_failure",
+    "StepReport",
+    # Ensembles
+    "ensemble",
+    "ensemble_mesh",
+    "ensemble_gather",
+    # Subpackages
+    "oga",
+    "problems",
+]
 
-
+# sympy takes over a second to import: the pieces written with it load on first use.
 _LAZY = {
-    "symbolic": ("diffrax_vi.symbolic", None),
-    "compile_exprs": ("diffrax_vi.symbolic", "compile_exprs"),
-    "sympy_activation": ("diffrax_vi.symbolic", "sympy_activation"),
+    "compile_exprs": ("diffrax_vi.codegen", "compile_exprs"),
+    "sympy_activation": ("diffrax_vi.codegen", "sympy_activation"),
     "SymbolicAnsatz": ("diffrax_vi.symbolic.ansatz", "SymbolicAnsatz"),
     "VISEBasis": ("diffrax_vi.symbolic.ansatz", "VISEBasis"),
     "SympyLagrangianTerm": ("diffrax_vi.symbolic.terms", "SympyLagrangianTerm"),
@@ -115,15 +173,18 @@ _LAZY = {
 
 
 def __getattr__(name):
-    # sympy takes over a second to import; the symbolic pieces load on first use.
     if name in _LAZY:
         import importlib
 
         module, attr = _LAZY[name]
-        mod = importlib.import_module(module)
-        return mod if attr is None else getattr(mod, attr)
+        return getattr(importlib.import_module(module), attr)
+    if name == "symbolic":  # a submodule, reachable as an attribute like the others
+        import importlib
+
+        return importlib.import_module("diffrax_vi.symbolic")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(_PUBLIC | set(_LAZY))
+    # Submodules bound by their import are attributes too, but not public names.
+    return sorted(__all__)

@@ -95,7 +95,7 @@ def shallow_network(activation, width, nodes, **kwargs):
                   if name in kwargs}
     if dictionary:
         seed["initial_guess"] = dataclasses.replace(
-            seed.get("initial_guess", dvi.OGA1d()), **dictionary)
+            seed.get("initial_guess", dvi.oga.OGA1d()), **dictionary)
     if seed:
         kwargs["seed"] = dvi.SeedPolicy(**seed)
     return dvi.NetworkVI(dvi.ShallowNetBasis(activation, width), dvi.GaussLegendre(nodes), **kwargs)

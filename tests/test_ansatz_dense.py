@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi import problems
+from diffrax_vi import MirrorPairs, problems
 from diffrax_vi.ansatz.base import AbstractBasis
 from diffrax_vi.ansatz.dense import DenseNetBasis
-from diffrax_vi.oga import MirrorPairs
 from diffrax_vi.parameter_seed import FitProblem, fit_problem
 from diffrax_vi.seeding.training import LSGD, TrainingMethod, box_layer, default_init_scale
 from tests.helpers import max_relative_error, solve_problem

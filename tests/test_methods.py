@@ -40,7 +40,7 @@ def test_shallow_net_autodiff_accuracy_and_continuous_dense_output():
     problem = problems.harmonic_oscillator()
     solver = dvi.ShallowNetAutodiff(B(dvi.tanh, 10), GL(8))
     assert isinstance(solver.formulation, dvi.InterpolatingEndpoints)
-    assert solver.seed.initial_guess == dvi.OGA1dNormalized()
+    assert solver.seed.initial_guess == dvi.oga.OGA1dNormalized()
     ts = jnp.asarray(problem.ts)
     sol = diffrax.diffeqsolve(
         problem.term,
@@ -400,7 +400,7 @@ def test_dense_net_constructor_defaults_to_lsgd_and_refuses_other_bases():
 def test_dictionary_keywords_go_to_the_oga_and_are_refused_elsewhere():
     method = dvi.ShallowNet(dvi.ShallowNetBasis(dvi.tanh, 4), dvi.GaussLegendre(4),
                             dict_amount=40, bias_interval=[-1, 1])
-    assert method.seed.initial_guess == dvi.OGA1d(dict_amount=40, bias_interval=(-1.0, 1.0))
+    assert method.seed.initial_guess == dvi.oga.OGA1d(dict_amount=40, bias_interval=(-1.0, 1.0))
     with pytest.raises(TypeError, match="DenseNet: dict_amount configure the OGA's dictionary"):
         dvi.DenseNet(dvi.DenseNetBasis(dvi.tanh, 4, 4), dvi.GaussLegendre(8), dict_amount=40)
     with pytest.raises(ValueError, match="dict_amount must be a positive integer"):

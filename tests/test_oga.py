@@ -19,13 +19,11 @@ from diffrax_vi.oga import (  # noqa: E402
     OGA1dNormalized,
     RawProjection,
     WeightedQR,
-    bias_grid,
     oga_fit,
-    pivoted_lstsq,
-    qr_append,
-    qr_init,
-    ridged_lstsq,
 )
+from diffrax_vi.oga._qr import pivoted_lstsq, qr_append, qr_init  # noqa: E402
+from diffrax_vi.oga.dictionaries import bias_grid  # noqa: E402
+from diffrax_vi.oga.fits import ridged_lstsq  # noqa: E402
 from diffrax_vi.quadrature import Simpson  # noqa: E402
 from tests.helpers import oga_fixture, sqrt_eps  # noqa: E402
 

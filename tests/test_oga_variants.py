@@ -12,15 +12,19 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from diffrax_vi.activations import relu_k, tanh  # noqa: E402
+from diffrax_vi.ansatz.symmetry import (  # noqa: E402
+    MirrorPairs,
+    NoSymmetry,
+    SharedMirrorPairs,
+    mirror,
+)
 from diffrax_vi.oga import (  # noqa: E402
     OGA,
     AngularGrid,
     BiasGrid1d,
     IncrementalQR,
-    MirrorPairs,
     NormalEquationsFit,
     NormalizedProjection,
-    NoSymmetry,
     OGA1d,
     OGA1dNormalEquations,
     OGA1dStable,
@@ -30,19 +34,14 @@ from diffrax_vi.oga import (  # noqa: E402
     PivotedQR,
     RawProjection,
     Refined,
-    SharedMirrorPairs,
     TruncatedSVD,
     WeightBiasGrid2d,
     WeightedQR,
-    guarded_solve,
-    jacobi_svd,
-    lu_solve,
-    mirror,
     oga_fit,
-    qr_append,
-    qr_init,
-    weight_grid,
 )
+from diffrax_vi.oga._qr import jacobi_svd, lu_solve, qr_append, qr_init  # noqa: E402
+from diffrax_vi.oga.dictionaries import weight_grid  # noqa: E402
+from diffrax_vi.oga.fits import guarded_solve  # noqa: E402
 from diffrax_vi.quadrature import Simpson  # noqa: E402
 from tests.helpers import oga_fixture, sqrt_eps  # noqa: E402
 

@@ -351,11 +351,11 @@ def test_default_root_finder_follows_the_formulation():
         (dvi.ShallowNetBasis(dvi.tanh, 10), dict(seed=dvi.SeedPolicy(reuse_neurons=True))),
         (dvi.ShallowNetBasis(dvi.tanh, 10), dict(seed=dvi.SeedPolicy(dvi.PreviousStep()))),
         (dvi.ShallowNetBasis(dvi.tanh, 10),
-         dict(seed=dvi.SeedPolicy(initial_guess=dvi.OGA2d()))),
+         dict(seed=dvi.SeedPolicy(initial_guess=dvi.oga.OGA2d()))),
         (dvi.ShallowNetBasis(dvi.tanh, 10),
-         dict(seed=dvi.SeedPolicy(initial_guess=dvi.OGA1d(dict_amount=400)))),
+         dict(seed=dvi.SeedPolicy(initial_guess=dvi.oga.OGA1d(dict_amount=400)))),
         (dvi.ShallowNetBasis(dvi.tanh, 10),
-         dict(seed=dvi.SeedPolicy(initial_guess=dvi.OGA1d(bias_interval=(-2, 2))))),
+         dict(seed=dvi.SeedPolicy(initial_guess=dvi.oga.OGA1d(bias_interval=(-2, 2))))),
         (dvi.ShallowNetBasis(dvi.sin, 10), {}),  # equal |w|: two features span everything
         (dvi.ShallowNetBasis(dvi.relu_k(1), 10), {}),
         (dvi.ShallowNetBasis(dvi.tanh, 4, symmetry=dvi.MirrorPairs()), {}),
@@ -384,10 +384,10 @@ def test_the_fixed_layer_refuses_seed_options_it_would_ignore():
     basis = dvi.ShallowNetBasis(dvi.tanh, 10)
     with pytest.raises(ValueError, match="initial_guess would have no effect"):
         dvi.NetworkVI(basis, formulation=dvi.VariableProjection(),
-                      seed=dvi.SeedPolicy(initial_guess=dvi.OGA2d()))
+                      seed=dvi.SeedPolicy(initial_guess=dvi.oga.OGA2d()))
     seeded = dvi.VariableProjection(hidden=dvi.SeedLayer())
     solver = dvi.NetworkVI(basis, formulation=seeded,
-                           seed=dvi.SeedPolicy(initial_guess=dvi.OGA1d(dict_amount=400)))
+                           seed=dvi.SeedPolicy(initial_guess=dvi.oga.OGA1d(dict_amount=400)))
     assert solver.seed.initial_guess.dict_amount == 400
 
 

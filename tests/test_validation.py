@@ -201,8 +201,8 @@ def test_bad_option_values():
     basis = dvi.ShallowNetBasis(dvi.tanh, 4)
     for kwargs, match in [
         (dict(root_find_max_steps=0), "root_find_max_steps"),
-        (dict(seed=dvi.OGA1d()), "seed must be a SeedPolicy"),
-        (dict(initial_guess=dvi.OGA1d()), "initial_guess"),
+        (dict(seed=dvi.oga.OGA1d()), "seed must be a SeedPolicy"),
+        (dict(initial_guess=dvi.oga.OGA1d()), "initial_guess"),
         (dict(error_estimate=0), "error_estimate"),
         (dict(iteration_log=-1), "iteration_log"),
         (dict(quadrature="gauss"), "quadrature"),
@@ -218,7 +218,7 @@ def test_bad_option_values():
         (dict(bias_interval="wide"), "bias_interval"),
     ]:
         with pytest.raises(ValueError, match=match):
-            dvi.OGA1d(**kwargs)
+            dvi.oga.OGA1d(**kwargs)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="positive integer node count"):
             dvi.GaussLegendre(bad)

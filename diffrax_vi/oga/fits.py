@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..precision import as_dtype, eps, sumsq
-from .qr import QRState, jacobi_svd, lu_solve, pivoted_lstsq, upper_solve
+from ._qr import QRState, jacobi_svd, lu_solve, pivoted_lstsq, upper_solve
 
 __all__ = [
     "AbstractFit",
@@ -185,8 +185,8 @@ class TruncatedSVD(AbstractFit):
 class NormalEquationsFit(AbstractFit):
     """The normal equations `(A^T A + lam I) x = A^T y`, solved by LU: a baseline only.
 
-    Squares the condition number of the design, which is why the reference's normal equations
-    needed float64. With `ridge`, `lam = 100 eps tr(A^T A) / k` (the eps of the solve dtype).
+    Squares the condition number of the design, so that it needs float64 on an ill-conditioned
+    design. With `ridge`, `lam = 100 eps tr(A^T A) / k` (the eps of the solve dtype).
     An exactly zero pivot makes the solve non-finite and so falls back to the ridged
     least squares.
 

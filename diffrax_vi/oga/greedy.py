@@ -5,61 +5,34 @@ output weights after every choice, so that `u(t) = sum_k c_k sigma(w_k t + b_k)`
 a target in the quadrature-weighted norm `||f||_w^2 = sum_j w_j f(t_j)^2`. It is the seed
 (initial guess) of the network integrators' Newton solve.
 
-Everything happens in the "scaled" space: each node's value is multiplied by `sqrt(w_j)`
-(and by the optional modulation), so weighted inner products become Euclidean ones, and the
-whole dictionary is multiplied by one power of two so that its largest row norm lies in
-`[1, 2)`. The loop is a `lax.while_loop` with static shapes; selected columns live in a fixed
-`(M, K)` design whose unused columns are zero.
-
-Differences from the reference implementation (NonlinearIntegrators.jl), on purpose:
-
-- the loop also stops once the residual is at rounding level (`8 eps` relative, including a
-  zero target) instead of picking further atoms against rounding noise; the remaining neurons
-  become placeholders;
-- placeholders are drawn from atoms that are usable (not numerically zero on the nodes) and
-  not selected, centred in equal parts of the candidate list; the reference could place
-  neurons that vanish on `[0, 1]` (dead ReLU neurons give zero Jacobian columns);
-- the refit's rank cut is `min(M, k) eps` at every precision, with zero coefficients beyond
-  the numerical rank (the reference's float32/float64 solve returns the minimum-norm
-  solution there, and its float16 solve has no rank cut).
+The fit works in the scaled space of `_scaled` (weighted inner products as Euclidean ones).
+The loop is a `lax.while_loop` with static shapes; selected columns live in a fixed `(M, K)`
+design whose unused columns are zero. It stops early once the residual is at rounding level,
+so that no atom is picked against rounding noise; the neurons left over become placeholders
+drawn from usable atoms, so that none vanishes on the nodes (a dead neuron would give a zero
+Jacobian column).
 """
 
 from __future__ import annotations
 
-import collections
 from collections.abc import Callable
 from typing import NamedTuple
 
 import equinox as eqx
-import jax
 import jax.lax as lax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array
 
-from ..activations import check_activation
 from ..ansatz.symmetry import AbstractSymmetry, NoSymmetry
-from ..precision import as_dtype, eps, norm2, power_of_two_scale, sqrt_eps
-from .dictionaries import Refined, dictionary_range
+from ..precision import as_dtype, eps, norm2, sqrt_eps
+from ._qr import QRState, qr_append, qr_init
+from ._scaled import ScaledDictionary, build_dictionary, cached_dictionary, validate_inputs
+from .dictionaries import Refined
 from .fits import guarded_solve
-from .qr import QRState, qr_append, qr_init
 from .reference import oga_reference_fit
 from .result import OGAResult
 
 __all__ = ["OGAResult", "oga_fit"]
-
-
-class _Dictionary(NamedTuple):
-    """The scaled dictionary of one fit (independent of the target)."""
-
-    atom_w: Array
-    atom_b: Array
-    psi_t: Array  # scaled rows, stored transposed; zero for unusable atoms
-    norms: Array
-    usable: Array
-    colscale: Array  # sqrt(weights) * modulation * scale
-    scale: Array
-    nfloor: Array  # norm floor of usable atoms (scaled units)
 
 
 class _Carry(NamedTuple):
@@ -112,9 +85,9 @@ def oga_fit(
 
     **Arguments:**
 
-    - `config`: the `OGA` configuration (static), or `OGAReference()` (from
-        `OGA1dNormalEquations()`) for the reference's unguarded float64 baseline, which takes
-        no `modulation` or `symmetry`.
+    - `config`: the `OGA` configuration (static), or the configuration of
+        `OGA1dNormalEquations()` (an unguarded normal-equations baseline in float64, which
+        takes no `modulation` or `symmetry`).
     - `activation`: the elementwise activation `sigma`; it must keep the dtype `T`
         (checked, a promoting activation raises `ValueError`). Must be hashable.
     - `nodes`: `(M,)` sample points `t_j` in `[0, 1]`; their dtype is the working dtype `T`.
@@ -148,88 +121,19 @@ def oga_fit(
             raise ValueError(
                 "the reference seed (OGA1dNormalEquations) takes no modulation and no symmetry"
             )
-        nodes, weights, y, _, bias_interval = _validate(
-            activation, nodes, weights, y, width, bias_interval, dict_amount, None, NoSymmetry()
-        )
+        args = (nodes, weights, y, width, bias_interval, dict_amount, None, NoSymmetry())
+        nodes, weights, y, _, bias_interval = validate_inputs(activation, *args)
         return _reference_jit(activation, nodes, weights, y, width, bias_interval, dict_amount)
-    if symmetry is None:
-        symmetry = NoSymmetry()
-    nodes, weights, y, modulation, bias_interval = _validate(
-        activation,
-        nodes,
-        weights,
-        y,
-        width,
-        bias_interval,
-        dict_amount,
-        modulation,
-        symmetry,
-    )
-    dic = _cached_dictionary(
+    symmetry = NoSymmetry() if symmetry is None else symmetry
+    args = (nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry)
+    nodes, weights, y, modulation, bias_interval = validate_inputs(activation, *args)
+    dic = cached_dictionary(
         config, activation, raw, nodes.dtype, bias_interval, dict_amount, symmetry
     )
     if dic is not None:
         return _greedy_jit(config, activation, dic, nodes, jnp.sqrt(weights) * y, width, symmetry)
-    return _oga_fit_jit(
-        config,
-        activation,
-        nodes,
-        weights,
-        y,
-        width,
-        bias_interval,
-        dict_amount,
-        modulation,
-        symmetry,
-    )
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int | np.integer) and not isinstance(value, bool)
-
-
-def _validate(
-    activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
-):
-    if not isinstance(symmetry, AbstractSymmetry):
-        raise ValueError(f"symmetry must be an AbstractSymmetry instance, got {symmetry!r}")
-    if not callable(activation):
-        raise ValueError(f"activation must be callable, got {activation!r}")
-
-    arrays = {"nodes": nodes, "weights": weights, "y": y}
-    if modulation is not None:
-        arrays["modulation"] = modulation
-    arrays = {name: jnp.asarray(value) for name, value in arrays.items()}
-    dtype = arrays["nodes"].dtype
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise ValueError(f"nodes must have a floating dtype, got {dtype}")
-    for name, value in arrays.items():
-        if value.ndim != 1:
-            raise ValueError(f"{name} must be one-dimensional, got shape {value.shape}")
-        if value.dtype != dtype:
-            raise ValueError(
-                f"{name} has dtype {value.dtype} but nodes have dtype {dtype}; "
-                "all inputs must share the working dtype"
-            )
-    num_nodes = arrays["nodes"].shape[0]
-    if num_nodes < 1:
-        raise ValueError("nodes must not be empty")
-    for name, value in arrays.items():
-        if value.shape[0] != num_nodes:
-            raise ValueError(
-                f"{name} has length {value.shape[0]} but nodes have length {num_nodes}"
-            )
-    if not isinstance(arrays["weights"], jax.core.Tracer):
-        w = np.asarray(arrays["weights"])
-        if not (np.all(np.isfinite(w)) and np.all(w > 0)):
-            raise ValueError("quadrature weights must be finite and positive")
-
-    if not _is_int(width) or width < 1:
-        raise ValueError(f"width must be a positive integer, got {width!r}")
-    symmetry.check_width(int(width))
-    lo, hi = dictionary_range(bias_interval, dict_amount)
-    check_activation(activation, dtype)
-    return arrays["nodes"], arrays["weights"], arrays["y"], arrays.get("modulation"), (lo, hi)
+    args = (nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry)
+    return _oga_fit_jit(config, activation, *args)
 
 
 @eqx.filter_jit
@@ -242,7 +146,7 @@ def _reference_jit(activation, nodes, weights, y, width, bias_interval, dict_amo
 @eqx.filter_jit
 def _first_argmax(x: Array, index: Array) -> Array:
     """`argmax` of a finite vector (first index on ties), as a max and an index min: two
-    plain reductions, about twice as fast as XLA's CPU argmax on a large dictionary."""
+    plain reductions, faster than XLA's CPU argmax on a large dictionary."""
     top = jnp.max(x)
     return jnp.min(jnp.where(x == top, index, jnp.int32(x.shape[0]))).astype(jnp.int32)
 
@@ -258,146 +162,28 @@ def _greedy_jit(config, activation, dic, nodes, yhat, width, symmetry):
 def _oga_fit_jit(
     config, activation, nodes, weights, y, width, bias_interval, dict_amount, modulation, symmetry
 ):
-    return oga_fit_traced(
-        config,
-        activation,
-        nodes,
-        weights,
-        y,
-        int(width),
-        bias_interval,
-        int(dict_amount),
-        modulation,
-        symmetry,
+    # The dictionary is built inside the program here: some of its inputs are traced.
+    dic = build_dictionary(
+        config, activation, nodes, weights, bias_interval, int(dict_amount), modulation, symmetry
     )
-
-
-def _build_dictionary(
-    config,
-    activation: Callable,
-    nodes: Array,
-    weights: Array,
-    bias_interval: tuple[float, float],
-    dict_amount: int,
-    modulation: Array | None,
-    symmetry: AbstractSymmetry,
-) -> _Dictionary:
-    dtype = nodes.dtype
-    zero = as_dtype(0, dtype)
-    colscale = jnp.sqrt(weights)
-    if modulation is not None:
-        colscale = colscale * modulation
-    table = config.dictionary.atoms_np(bias_interval, dict_amount, dtype)
-    atom_w = jnp.asarray(table[:, 0], dtype=dtype)
-    atom_b = jnp.asarray(table[:, 1], dtype=dtype)
-    psi = symmetry.scoring_rows(activation, atom_w, atom_b, nodes, colscale)
-    norms = norm2(psi, axis=1)
-    finite = jnp.isfinite(norms)
-    scale = power_of_two_scale(jnp.max(jnp.where(finite, norms, zero)))
-    norms = norms * scale
-    finite_max = jnp.max(jnp.where(finite, norms, zero))
-    nfloor = sqrt_eps(dtype) * finite_max if config.norm_guard else zero
-    usable = finite & (norms > nfloor)
-    # Scaling is exact (a power of two); unusable atoms are zeroed so no Inf/NaN reaches a
-    # product. Stored one column per atom: `r @ psi_t` streams contiguous memory.
-    psi_t = jnp.where(usable[None, :], psi.T * scale, zero)
-    return _Dictionary(atom_w, atom_b, psi_t, norms, usable, colscale * scale, scale, nfloor)
-
-
-_DICTIONARY_CACHE: collections.OrderedDict = collections.OrderedDict()
-_DICTIONARY_CACHE_SIZE = 16
-
-
-def _cached_dictionary(
-    config, activation, raw, dtype, bias_interval, dict_amount, symmetry
-) -> _Dictionary | None:
-    """The scaled dictionary, built once and reused, when the nodes, weights and modulation
-    `raw` were given as concrete values (NumPy arrays, or JAX arrays created outside any
-    trace); `None` when any of them is traced.
-
-    The dictionary does not depend on the target, so for fixed nodes it is a constant of the
-    fit: building it eagerly turns the largest part of a fit with a big dictionary (one
-    activation evaluation per atom and node) into an embedded constant of the compiled
-    program. An integrator passes its quadrature's nodes as NumPy arrays for this reason.
-    With traced nodes it is built inside the program instead. Results are identical.
-    """
-    arrays = tuple(a for a in raw if a is not None)
-    if any(isinstance(a, jax.core.Tracer) for a in arrays):
-        return None
-    arrays = tuple(np.asarray(a) for a in arrays)
-    modulation = arrays[2] if len(arrays) == 3 else None
-    key = (
-        config.dictionary,
-        config.norm_guard,
-        activation,
-        symmetry,
-        tuple(bias_interval),
-        int(dict_amount),
-        np.dtype(dtype).name,
-    ) + tuple(a.tobytes() for a in arrays)
-    try:
-        hash(key)
-    except TypeError:  # an unhashable activation: no caching
-        key = None
-    if key is not None and key in _DICTIONARY_CACHE:
-        _DICTIONARY_CACHE.move_to_end(key)
-        return _DICTIONARY_CACHE[key]
-    with jax.ensure_compile_time_eval():
-        nodes, weights = (jnp.asarray(a, dtype) for a in arrays[:2])
-        if modulation is not None:
-            modulation = jnp.asarray(modulation, dtype)
-        # One compiled program rather than op-by-op dispatch (which compiles each operation
-        # on its own: seconds of a solver's compile time).
-        dic = eqx.filter_jit(_build_dictionary)(
-            config, activation, nodes, weights, bias_interval, dict_amount, modulation, symmetry
-        )
-        dic = _Dictionary(*(jax.block_until_ready(jnp.asarray(v)) for v in dic))
-    if key is not None:
-        _DICTIONARY_CACHE[key] = dic
-        if len(_DICTIONARY_CACHE) > _DICTIONARY_CACHE_SIZE:
-            _DICTIONARY_CACHE.popitem(last=False)
-    return dic
-
-
-def oga_fit_traced(
-    config,
-    activation: Callable,
-    nodes: Array,
-    weights: Array,
-    y: Array,
-    width: int,
-    bias_interval: tuple[float, float],
-    dict_amount: int,
-    modulation: Array | None,
-    symmetry: AbstractSymmetry,
-) -> OGAResult:
-    """`oga_fit` inside a function being traced: no checks of the arguments and no jit of its
-    own (the seed-quality study vmaps it over targets)."""
-    dic = _build_dictionary(
-        config, activation, nodes, weights, bias_interval, dict_amount, modulation, symmetry
-    )
-    return _greedy(config, activation, dic, nodes, jnp.sqrt(weights) * y, width, symmetry)
+    yhat = jnp.sqrt(weights) * y
+    return _greedy(config, activation, dic, nodes, yhat, int(width), symmetry)
 
 
 def _greedy(
     config,
     activation: Callable,
-    dic: _Dictionary,
+    dic: ScaledDictionary,
     nodes: Array,
     yhat: Array,
     width: int,
     symmetry: AbstractSymmetry,
 ) -> OGAResult:
     dtype = yhat.dtype
-    num_nodes = yhat.shape[0]
-    zero = as_dtype(0, dtype)
-    per_atom = symmetry.neurons_per_atom
-    percol = symmetry.columns_per_atom
-    nsteps = width // per_atom
-    maxcols = nsteps * percol
+    nsteps = width // symmetry.neurons_per_atom
+    maxcols = nsteps * symmetry.columns_per_atom
     maxattempts = 9 * nsteps + 8
     cap = as_dtype(1, dtype) - sqrt_eps(dtype)
-    min_gain = config.selection.min_gain(dtype)
     psi_t, norms = dic.psi_t, dic.norms
     atom_index = jnp.arange(norms.shape[0], dtype=jnp.int32)
 
@@ -430,43 +216,17 @@ def _greedy(
         scores = jnp.where(ok, scores, as_dtype(-1, dtype))
         best = _first_argmax(scores, atom_index)
         stop = (scores[best] < 0) | negligible(c.resid)
-
-        wa, ba = dic.atom_w[best], dic.atom_b[best]
-        if isinstance(config.dictionary, Refined):
-            wa, ba = _refine(
-                config.dictionary,
-                config.selection,
-                activation,
-                dic,
-                nodes,
-                c.resid,
-                c.qr,
-                wa,
-                ba,
-                symmetry,
-            )
-            row = symmetry.scoring_rows(activation, wa[None], ba[None], nodes, dic.colscale)[0]
-        else:
-            row = psi_t[:, best]
-        columns = symmetry.fit_columns(activation, wa, ba, nodes, dic.colscale, row)
-        qr = c.qr
-        gain = zero
-        good = jnp.ones((), bool)
-        for j in range(percol):
-            qr, rho, accepted = qr_append(qr, columns[:, j], min_gain)
-            gain = rho if j == 0 else jnp.minimum(gain, rho)
-            good = good & accepted
+        wa, ba, columns = _atom_columns(config, activation, dic, nodes, c, best, symmetry)
+        qr, gain, good = _append_columns(config, c.qr, columns)
         accept = ~stop & good
-        refuse = ~stop & ~good
 
         # Tentative accepted state; kept only if `accept` (all small arrays).
         design = c.design
-        for j in range(percol):
+        for j in range(columns.shape[1]):
             at = jnp.arange(maxcols) == c.ncols + j
             design = jnp.where(at[None, :], columns[:, j : j + 1], design)
-        ncols = c.ncols + percol
+        ncols = c.ncols + columns.shape[1]
         x = guarded_solve(config.fit, design, yhat, qr, ncols)
-        resid = yhat - design @ x
         at_step = accept & (jnp.arange(nsteps) == c.step)
 
         def keep(new, old):
@@ -476,12 +236,12 @@ def _greedy(
             attempt=c.attempt + 1,
             step=c.step + accept.astype(jnp.int32),
             ncols=keep(ncols, c.ncols),
-            rejected=c.rejected + refuse.astype(jnp.int32),
+            rejected=c.rejected + (~stop & ~good).astype(jnp.int32),
             stopped=stop,
             qr=QRState(*(keep(n, o) for n, o in zip(qr, c.qr, strict=True))),
             design=keep(design, c.design),
             x=keep(x, c.x),
-            resid=keep(resid, c.resid),
+            resid=keep(yhat - design @ x, c.resid),
             avail=avail & (stop | (atom_index != best)),
             pending=accept,
             pending_best=keep(best, c.pending_best),
@@ -491,8 +251,40 @@ def _greedy(
             gains=jnp.where(at_step, gain, c.gains),
         )
 
+    out = lax.while_loop(cond, body, _initial_carry(dic, yhat, nsteps, maxcols))
+    return _result(config, dic, out, nsteps, width, symmetry)
+
+
+def _atom_columns(config, activation, dic, nodes, c: _Carry, best, symmetry):
+    """The atom `(w, b)` taken at index `best` (refined if the dictionary asks for it) and
+    its fit columns."""
+    wa, ba = dic.atom_w[best], dic.atom_b[best]
+    if isinstance(config.dictionary, Refined):
+        found = (c.resid, c.qr, wa, ba, symmetry)
+        wa, ba = _refine(config.dictionary, config.selection, activation, dic, nodes, *found)
+        row = symmetry.scoring_rows(activation, wa[None], ba[None], nodes, dic.colscale)[0]
+    else:
+        row = dic.psi_t[:, best]
+    return wa, ba, symmetry.fit_columns(activation, wa, ba, nodes, dic.colscale, row)
+
+
+def _append_columns(config, qr: QRState, columns: Array):
+    """Append an atom's columns to the QR factorisation: the new factorisation, the smallest
+    gain and whether every column added a new direction."""
+    min_gain = config.selection.min_gain(columns.dtype)
+    gain = as_dtype(0, columns.dtype)
+    good = jnp.ones((), bool)
+    for j in range(columns.shape[1]):
+        qr, rho, accepted = qr_append(qr, columns[:, j], min_gain)
+        gain = rho if j == 0 else jnp.minimum(gain, rho)
+        good = good & accepted
+    return qr, gain, good
+
+
+def _initial_carry(dic: ScaledDictionary, yhat: Array, nsteps: int, maxcols: int) -> _Carry:
+    dtype, num_nodes = yhat.dtype, yhat.shape[0]
     int0 = jnp.zeros((), jnp.int32)
-    init = _Carry(
+    return _Carry(
         attempt=int0,
         step=int0,
         ncols=int0,
@@ -510,8 +302,9 @@ def _greedy(
         atoms=jnp.full((nsteps,), -1, jnp.int32),
         gains=jnp.zeros((nsteps,), dtype),
     )
-    out = lax.while_loop(cond, body, init)
 
+
+def _result(config, dic: ScaledDictionary, out: _Carry, nsteps, width, symmetry) -> OGAResult:
     slot_w, slot_b = out.slot_w, out.slot_b
     if config.fill_unused:
         # If the loop ran out of attempts right after accepting an atom, that atom's coherence
@@ -522,13 +315,12 @@ def _greedy(
 
         slot_w, slot_b = lax.cond(out.step < nsteps, fill, lambda wb: wb, (slot_w, slot_b))
     W, B = symmetry.neurons(slot_w, slot_b)
-
     return OGAResult(
         W=W,
         b=B,
         c=symmetry.coefficients(out.x * dic.scale, width),
         atoms=out.atoms,
-        placed=out.step * per_atom,
+        placed=out.step * symmetry.neurons_per_atom,
         residual=norm2(out.resid),
         gains=out.gains,
         rejected=out.rejected,

@@ -20,8 +20,8 @@ import jax.lax as lax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from ._qr import lu_solve
 from .dictionaries import BiasGrid1d
-from .qr import lu_solve
 from .result import OGAResult
 
 __all__ = ["oga_reference_fit"]

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..precision import as_dtype, sqrt_eps, sumsq
-from .qr import QRState
+from ._qr import QRState
 
 __all__ = [
     "AbstractSelection",
@@ -76,7 +76,7 @@ class RawProjection(AbstractSelection):
     """Score `|<psi_i, r>|`: the plain projection, not invariant to the scale of an atom.
 
     Atoms with a large norm are favoured. On the `±1` bias grid the norms are comparable and
-    this is the reference's default (its selected atoms are pinned by a regression test); on
+    this is `OGA1d`'s rule (its selected atoms are pinned by a regression test); on
     grids that mix weight magnitudes a scale-invariant rule is needed.
     """
 

@@ -1,10 +1,10 @@
-"""Reference problems of NonlinearIntegrators.jl / GeometricProblems.jl as diffrax terms.
+"""Test problems of Lagrangian mechanics as diffrax terms, with stored reference solutions.
 
 Each function returns a `Problem`: a `LagrangianTerm` or `IODETerm`, an initial state
 `(q0, p0)` in the requested dtype, a default span and step, an energy for drift measurements and
-a float64 reference solution. Three harder problems have no counterpart in the reference package:
-a slowly modulated (time-dependent) oscillator, a charged particle in a non-uniform magnetic
-field and the stiff Fermi–Pasta–Ulam chain.
+a float64 reference solution. The slowly modulated (time-dependent) oscillator, the charged
+particle in a non-uniform magnetic field and the stiff Fermi–Pasta–Ulam chain are the harder
+ones.
 """
 
 from .base import Problem as Problem
@@ -15,9 +15,32 @@ from .fermi_pasta_ulam import fermi_pasta_ulam as fermi_pasta_ulam
 from .harmonic_oscillator import harmonic_oscillator as harmonic_oscillator
 from .henon_heiles import henon_heiles as henon_heiles
 from .kepler import kepler as kepler
+from .kepler import solve_kepler_equation as solve_kepler_equation
 from .modulated_oscillator import modulated_oscillator as modulated_oscillator
 from .outer_solar_system import outer_solar_system as outer_solar_system
 from .pendulum import pendulum as pendulum
 from .perturbed_pendulum import perturbed_pendulum as perturbed_pendulum
 from .stored import StoredFlow as StoredFlow
 from .toda_lattice import toda_lattice as toda_lattice
+
+__all__ = [
+    "Problem",
+    "StoredFlow",
+    "charged_particle",
+    "coupled_oscillators",
+    "double_pendulum",
+    "fermi_pasta_ulam",
+    "harmonic_oscillator",
+    "henon_heiles",
+    "kepler",
+    "modulated_oscillator",
+    "outer_solar_system",
+    "pendulum",
+    "perturbed_pendulum",
+    "solve_kepler_equation",
+    "toda_lattice",
+]
+
+
+def __dir__():
+    return sorted(__all__)
