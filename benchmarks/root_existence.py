@@ -46,7 +46,9 @@ TEN = dvi.IntegratorExtrapolation(substeps=10)
 SEEDS = {
     "OGA1d (10 sub-steps)": dvi.SeedPolicy(TEN),
     "OGA2d": dvi.SeedPolicy(TEN, initial_guess=dvi.oga.OGA2d()),
-    "OGA2d, |w| up to 8": dvi.SeedPolicy(TEN, initial_guess=dvi.oga.OGA2d(dvi.oga.WeightBiasGrid2d())),
+    "OGA2d, |w| up to 8": dvi.SeedPolicy(
+        TEN, initial_guess=dvi.oga.OGA2d(dvi.oga.WeightBiasGrid2d())
+    ),
     "100 midpoint sub-steps": dvi.SeedPolicy(dvi.IntegratorExtrapolation(substeps=100)),
 }
 
