@@ -129,27 +129,20 @@ def kinetic_structure(term, t, q, args) -> KineticStructure | None:
 class PicardPlan(NamedTuple):
     """The constant maps of the iteration (NumPy float64), for one span and rule.
 
-    Node values: `qf, qg` (`R × R`), `qp` (`R`) for `Q`; `vf, vg, vp` for `V`. Unknowns:
-    `xf, xg` (`(k + 1) × R`), `xp` (`k + 1`) for `X = [δc M / h; Δp]`; `kinv`, the inverse
-    of the kinetic part of the equations' Jacobian in `X`. The step's equations: `gq`, `gv`
-    (`R × k`), the span's values and slopes at the nodes; `bq`, `bv` (`k × R`), the same
-    weighted by the rule; `g0`, `gd` (`k`), the directions' values at `τ = 0` and changes
-    over the step; `live` (`k`), the directions kept."""
+    The start: `xf, xg` (`(k + 1) × R`), `xp` (`k + 1`) map node values to the unknowns
+    `X = [δc M / h; Δp]`; `kinv`, the inverse of the kinetic part of the equations' Jacobian
+    in `X`. The step's equations: `gq`, `gv`
+    (`R × k`), the span's values and slopes at the nodes; `b` (`R`), the rule's weights;
+    `g0`, `gd` (`k`), the directions' values at `τ = 0` and changes over the step; `live`
+    (`k`), the directions kept."""
 
-    qf: np.ndarray
-    qg: np.ndarray
-    qp: np.ndarray
-    vf: np.ndarray
-    vg: np.ndarray
-    vp: np.ndarray
     xf: np.ndarray
     xg: np.ndarray
     xp: np.ndarray
     kinv: np.ndarray
     gq: np.ndarray
     gv: np.ndarray
-    bq: np.ndarray
-    bv: np.ndarray
+    b: np.ndarray
     g0: np.ndarray
     gd: np.ndarray
     live: np.ndarray
@@ -189,10 +182,8 @@ def picard_plan(span, weights) -> PicardPlan | None:
     jacobian = block.copy()
     jacobian[k, :k] = -g0
     return PicardPlan(
-        qf=gq @ xf[:k], qg=gq @ xg[:k], qp=gq @ xp[:k],
-        vf=gv @ xf[:k], vg=gv @ xg[:k], vp=gv @ xp[:k],
         xf=xf, xg=xg, xp=xp, kinv=np.linalg.inv(jacobian),
-        gq=gq, gv=gv, bq=(b[:, None] * gq).T, bv=(b[:, None] * gv).T, g0=g0, gd=gd, live=live,
+        gq=gq, gv=gv, b=b, g0=g0, gd=gd, live=live,
     )
 
 
@@ -240,6 +231,7 @@ class _Carry(NamedTuple):
     z: tuple[Array, Array]
     f: Array
     change: Array
+    rate: Array
     residual: Array
     growth: Array
     updates: Array
@@ -351,7 +343,11 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
         change = delta / jnp.maximum(size, tiny)
         known = jnp.isfinite(c.change) & (c.change > 0)
         rate = change / jnp.where(known, c.change, 1)
-        predicted = known & (rate < 1) & (change * rate <= (1 - rate) * eps / PREDICT_MARGIN)
+        # the worse of the last two rates: the error has several modes, and a ratio taken as
+        # a fast one dies out understates the slow one's (stopping one update early leaves an
+        # error of the same sign on every step, an energy drift)
+        worst = jnp.maximum(rate, c.rate)
+        predicted = known & (worst < 1) & (change * worst <= (1 - worst) * eps / PREDICT_MARGIN)
         at_noise = (change <= NOISE * eps) & (change >= 0.5 * c.change)
         finite = jnp.isfinite(change)
         converged = ((change == 0) | predicted | at_noise) & finite
@@ -359,12 +355,13 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
         growth = jnp.where(growing, c.growth + 1, 0)
         updates = c.updates + 1
         done = converged | ~finite | (growth > MAX_GROWTH) | (updates >= MAX_UPDATES)
-        return _Carry(z, f, change, fsize, growth, updates, converged, done)
+        rate = jnp.where(known, rate, jnp.inf)
+        return _Carry(z, f, change, rate, fsize, growth, updates, converged, done)
 
     inf = jnp.full((), jnp.inf, dtype)
     zero = jnp.array(0, jnp.int32)
     no = jnp.array(False)
-    carry = _Carry(z0, f0, inf, inf, zero, zero, no, no)
+    carry = _Carry(z0, f0, inf, inf, inf, zero, zero, no, no)
     for _ in range(UNROLLED):
         carry = update(carry)
     end = jax.lax.while_loop(lambda c: ~c.done, update, carry)
@@ -393,8 +390,12 @@ def step_residual(plan: PicardPlan, ctx, z) -> tuple[tuple[Array, Array], Array]
     v = curve[r_nodes:2 * r_nodes] / h
     c = curve[2 * r_nodes]
     p, f = _momenta_and_forces(ctx, q, v)
-    sums = _combine(np.concatenate([plan.bq, plan.bv], axis=1),
-                    jnp.concatenate([h * f, p.astype(dtype)]))
+    # the weights multiply the node values here, not the constant maps: `gq`, `gv` must be
+    # the very numbers that placed the curve, or the equations are no longer the exact
+    # stationarity of one discrete action (a fixed rounding of `b·gq` is a drift, not noise)
+    b = jnp.asarray(plan.b, dtype)[:, None]
+    sums = _combine(np.concatenate([plan.gq, plan.gv]).T,
+                    jnp.concatenate([(h * b) * f, b * p.astype(dtype)]))
     g0, gd = (jnp.asarray(a, dtype)[:, None] for a in (plan.g0, plan.gd))
     r = dp * g0 + dp * gd + p0 * gd - sums
     r = jnp.where(jnp.asarray(plan.live)[:, None], r, dc)

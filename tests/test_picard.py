@@ -197,6 +197,37 @@ def test_lower_precisions(dtype, bound):
     assert np.max(np.abs(np.asarray(sol.ys[0], np.float64) - q_ref)) <= bound
 
 
+def _oscillator_energy_errors(steps):
+    problem = problems.harmonic_oscillator()
+    h = 0.5
+    sol = diffrax.diffeqsolve(problem.term, dvi.CGVI(7, root_finder=ENGINE), 0.0, steps * h, h,
+                              problem.y0, args=problem.args, max_steps=steps,
+                              saveat=diffrax.SaveAt(steps=True))
+    e0 = float(problem.energy(0.0, *problem.y0))
+    energy = jax.vmap(lambda q, p: problem.energy(0.0, q, p))(sol.ys[0], sol.ys[1])
+    return np.asarray(sol.ts), np.abs(np.asarray(energy) - e0) / abs(e0)
+
+
+@pytest.mark.slow
+def test_energy_error_stays_at_round_off():
+    # CGVI(7), oscillator, h = 0.5: the bound of the chord iteration's long-run test
+    # (tests/test_methods.py) holds over ten times the steps. An iteration whose result
+    # carries an error of the same sign on every step (constants rounded once, or a stop one
+    # update early) grows linearly instead and exceeds it.
+    _, errors = _oscillator_energy_errors(200_000)
+    assert errors.max() <= 1e-13
+
+
+@pytest.mark.long
+def test_energy_error_follows_brouwers_law():
+    # 10^6 steps: the running maximum grows as a random walk's (exponent 1/2), not linearly.
+    from diffrax_vi.bench.harness import growth_exponent
+
+    ts, errors = _oscillator_energy_errors(1_000_000)
+    assert errors[:20_000].max() <= 5e-14
+    assert growth_exponent(ts, np.maximum.accumulate(errors)) <= 0.6
+
+
 def test_picard_must_be_a_bool():
     with pytest.raises(TypeError, match="picard"):
         FixedPointIteration(picard="yes")
