@@ -10,7 +10,18 @@ precision and records, as the reference's benchmark does:
 - `ham_drift`: `max_n |H_n − H_0| / |H_0|` over the step ends, evaluated in float64,
 - `iterations`: nonlinear iterations of the final step, and `total_s`: wall time of the run
   including compilation (cases that differ only in `dt`, λ or the convergence test share one
-  compilation).
+  compilation),
+- `result`: the `diffrax.RESULTS` member the solve ended with, and `err_t1`: the error of the
+  final `q` relative to the size of the motion, `max|q(t1) − q_ref(t1)| / max_n |q_ref(t_n)|`
+  (`ref_err` divides by `|q_ref(t1)|` alone, which is small where the motion crosses zero).
+
+The restated stability target (issue 52; `stability_target`, `report.stability_target_table`):
+with our convergence test, at least 90 / 85 / 60 % of the cases with `dt ≤ 1` converge in
+float64 / float32 / float16 (`TARGET_RATES`); every case with a larger step ends either
+*accurate* (successful, `err_t1 ≤ accuracy_tolerance(dtype)`: 1 % of the motion, or `√eps`
+where that is larger) or *failed* (a non-successful result), never *wrong* (successful and
+not accurate, `outcome`); and those cases run again under `RetryFailedSteps`
+(`controller="retry"`, added by `quick_grid`) reach `t1`.
 
 The reference's "DogLeg" and "Newton/Backtracking" solvers map to our `LevenbergMarquardt`
 (a trust-region-like damped Gauss–Newton, with its own damping scale) and `RegularisedNewton`
@@ -44,9 +55,10 @@ from ..quadrature import GaussLegendre
 from ..seeding.policy import SeedPolicy
 from ..seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
 from ..solver import NetworkVI
+from ..step_size import RetryFailedSteps
 from .executor import run_sweep
 from .harness import relative_error, write_rows
-from .status import classify, converged
+from .status import classify, converged, result_name
 
 __all__ = [
     "StabilityCase",
@@ -60,6 +72,11 @@ __all__ = [
     "SOLVERS",
     "PROJECTED",
     "select_solvers",
+    "TARGET_RATES",
+    "ACCURATE_FRACTION",
+    "accuracy_tolerance",
+    "outcome",
+    "stability_target",
 ]
 
 # The reference's quick run (problems_and_benchmarks §2.6): converged / cases per precision.
@@ -91,6 +108,18 @@ PROBLEMS = {
     "double_pendulum": _problems.double_pendulum,
     "toda_lattice": _problems.toda_lattice,
 }
+# The restated target (issue 52): strict convergence rate over the cases with dt <= 1.
+TARGET_RATES = {"float64": 0.90, "float32": 0.85, "float16": 0.60}
+# A successful case with a larger step is accurate when its final q is within this fraction
+# of the motion's size of the reference (or within sqrt(eps), where that is larger).
+ACCURATE_FRACTION = 1e-2
+# Steps above this are the sweep's "large" ones (the quick grid's dt = 10).
+LARGE_DT = 1.0
+# diffeqsolve's step budget for a run under RetryFailedSteps (each failed trial and each
+# piece counts: 10 intervals of up to 2^8 pieces, and the failures on the way).
+RETRY_MAX_STEPS = 4096
+CONTROLLERS = ("constant", "retry")
+
 # Per-problem quick settings of the reference (§2.3): network width S and quadrature nodes R.
 QUICK_WIDTH = {"harmonic_oscillator": 10, "pendulum": 8, "double_pendulum": 10, "toda_lattice": 8}
 QUICK_NODES = {"harmonic_oscillator": 8, "pendulum": 8, "double_pendulum": 16, "toda_lattice": 16}
@@ -108,7 +137,8 @@ class StabilityCase:
     previous curve, so it does not use it), `steps` (10), `max_iterations` (the per-step
     iteration cap), `acceptance` (`"strict"`: our convergence test, or `"reference"`: the
     reference's, see `AbstractDampedNewton`'s `convergence`; the projected step has only
-    `"strict"`).
+    `"strict"`), `controller` (`"constant"`: exactly `steps` steps, `StepTo`; or `"retry"`:
+    the same grid under `RetryFailedSteps`, which splits a failed step into pieces).
     """
 
     problem: str
@@ -123,6 +153,7 @@ class StabilityCase:
     steps: int = 10
     max_iterations: int = 100
     acceptance: str = "strict"
+    controller: str = "constant"
 
     def __post_init__(self):
         for field, table in (("problem", PROBLEMS), ("activation", ACTIVATIONS),
@@ -135,6 +166,8 @@ class StabilityCase:
             raise ValueError(f"dtype must be float16, float32 or float64; got {self.dtype!r}")
         if self.acceptance not in ("strict", "reference"):
             raise ValueError(f"acceptance must be strict or reference; got {self.acceptance!r}")
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
         if self.solver in PROJECTED and self.acceptance != "strict":
             raise ValueError(
                 f"the {self.solver!r} solver has only our convergence test (acceptance "
@@ -163,7 +196,8 @@ class StabilityCase:
         """Cases with equal keys share one compilation (they differ only in `dt`, λ or the
         convergence test, which enter the compiled solve as traced values)."""
         return (self.problem, self.dtype, self.nodes, self.width, self.activation,
-                self.solver, self.initial_guess, self.steps, self.max_iterations)
+                self.solver, self.initial_guess, self.steps, self.max_iterations,
+                self.controller)
 
     def build(self, reference=None, lam=None) -> NetworkVI:
         """The configured `NetworkVI`. `reference` (a possibly traced boolean) overrides
@@ -201,19 +235,26 @@ def quick_grid(
     solvers: Sequence[str] = ("LevenbergMarquardt", "RegularisedNewton"),
     max_iterations: int = 1000,
     acceptances: Sequence[str] = ("strict", "reference"),
+    retry_dts: Sequence[float] = (10.0,),
 ) -> list[StabilityCase]:
     """The reference's quick grid: 3 dt × 3 precisions × 2 activations × 2 solvers per problem
     (36 cases), with its per-problem S and R, λ = 16·sqrt(eps(T)) for `RegularisedNewton`,
     the midpoint guess and its iteration cap (1000); run once per convergence test in
     `acceptances` (ours, and the reference's, so that rates compare like with like). A
-    solver of `PROJECTED` (`"projection"`) runs with our test only."""
-    return [
+    solver of `PROJECTED` (`"projection"`) runs with our test only.
+
+    The cases with our test and a `dt` in `retry_dts` (default: dt = 10) run once more under
+    `RetryFailedSteps` (`controller="retry"`; one more compilation per network, precision
+    and solver): whether each reaches `t1`, and how accurately (`stability_target`)."""
+    cases = [
         StabilityCase(p, dt, T, QUICK_NODES[p], QUICK_WIDTH[p], a, s,
                       max_iterations=max_iterations, acceptance=acc)
         for acc, p, T, a, s, dt in itertools.product(
             acceptances, problems, dtypes, activations, solvers, dts)
         if not (s in PROJECTED and acc != "strict")
     ]
+    return cases + [dataclasses.replace(c, controller="retry") for c in cases
+                    if c.acceptance == "strict" and c.dt in retry_dts]
 
 
 def full_grid(
@@ -287,21 +328,36 @@ _SWITCHED = {name: _switched(cls) for name, cls in DAMPED.items()}
 
 class _Compiled:
     """A compiled 10-step solve for one `solver_key`; `dt` enters through `StepTo`'s times,
-    the convergence test as a traced flag and λ as a traced scalar."""
+    the convergence test as a traced flag and λ as a traced scalar. Under `"retry"` the
+    solve runs from `ts[0]` to `ts[-1]` in steps of `ts[1] − ts[0]` with `RetryFailedSteps`
+    and saves the end state only."""
 
     def __init__(self, case: StabilityCase):
         self.problem = PROBLEMS[case.problem](dtype=np.dtype(case.dtype))
         term, args = self.problem.term, self.problem.args
         steps = case.steps
 
-        @eqx.filter_jit
-        def solve(y0, ts, reference, lam):
-            solver = case.build(reference=reference, lam=lam)
-            return diffrax.diffeqsolve(
-                term, solver, ts[0], ts[-1], None, y0, args=args,
-                saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
-                stepsize_controller=diffrax.StepTo(ts), max_steps=steps, throw=False,
-            )
+        if case.controller == "retry":
+
+            @eqx.filter_jit
+            def solve(y0, ts, reference, lam):
+                solver = case.build(reference=reference, lam=lam)
+                return diffrax.diffeqsolve(
+                    term, solver, ts[0], ts[-1], ts[1] - ts[0], y0, args=args,
+                    saveat=diffrax.SaveAt(t1=True, solver_state=True),
+                    stepsize_controller=RetryFailedSteps(), max_steps=RETRY_MAX_STEPS,
+                    throw=False,
+                )
+        else:
+
+            @eqx.filter_jit
+            def solve(y0, ts, reference, lam):
+                solver = case.build(reference=reference, lam=lam)
+                return diffrax.diffeqsolve(
+                    term, solver, ts[0], ts[-1], None, y0, args=args,
+                    saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
+                    stepsize_controller=diffrax.StepTo(ts), max_steps=steps, throw=False,
+                )
 
         self.solve = solve
 
@@ -332,8 +388,12 @@ def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
                            jnp.asarray(case.lam_value, jnp.float64)))
         row["total_s"] = time.perf_counter() - start
         row["status"] = classify(sol, iteration_cap=case.max_iterations)
+        row["result"] = result_name(sol.result)
         state = sol.solver_state
         row["iterations"] = int(state.last_iterations)
+        if case.controller == "retry":
+            _retry_columns(row, sol, problem, ts64)
+            return row
         row["steps_done"] = int(state.steps)
         ts = np.asarray(sol.ts)
         keep = np.isfinite(ts)
@@ -341,6 +401,7 @@ def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
         if row["status"] in ("ok", "maxiter") and keep.sum() == case.steps + 1:
             q_ref = problem.reference(ts64[-1:])[0][0]
             row["ref_err"] = relative_error(qs[-1], q_ref)
+            row["err_t1"] = _motion_error(qs[-1], problem, ts64)
             f64 = jnp.float64
             h = np.asarray(compiled.energy(jnp.asarray(ts64, f64), jnp.asarray(qs, f64),
                                            jnp.asarray(ps, f64)))
@@ -352,10 +413,40 @@ def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
     return row
 
 
+def _motion_error(q: np.ndarray, problem, ts64: np.ndarray) -> float:
+    """`max|q − q_ref(t1)| / max_n |q_ref(t_n)|` over the case's grid `ts64` (`err_t1`)."""
+    q_refs = np.asarray(problem.reference(ts64)[0], np.float64)
+    scale = float(np.max(np.abs(q_refs)))
+    err = float(np.max(np.abs(np.asarray(q, np.float64) - q_refs[-1])))
+    return err / scale if scale > 0 else err
+
+
+def _retry_columns(row: dict, sol, problem, ts64: np.ndarray) -> None:
+    """The columns of a run under `RetryFailedSteps`: `t_end` (the time it ended at),
+    `reached` (a successful result with a finite state at `t1`), `steps_done` (accepted
+    steps and pieces), `rejected` (failed trials), `err_t1` where the end state is finite,
+    and `ham_drift` there (the energy error at `t1` only: no other state is saved)."""
+    t_end = float(np.asarray(sol.ts)[-1])
+    q, p = (np.asarray(x, np.float64)[-1] for x in sol.ys)
+    finite = bool(np.all(np.isfinite(q)) and np.all(np.isfinite(p)))
+    row["t_end"] = t_end
+    row["reached"] = bool(row["result"] == "successful" and finite
+                          and abs(t_end - ts64[-1]) <= 1e-6 * max(abs(ts64[-1]), 1.0))
+    row["steps_done"] = int(sol.stats["num_accepted_steps"])
+    row["rejected"] = int(sol.stats["num_rejected_steps"])
+    if finite:
+        row["err_t1"] = _motion_error(q, problem, ts64)
+        f64 = jnp.float64
+        h0 = float(problem.energy(f64(ts64[0]), *(jnp.asarray(x, f64) for x in problem.y0)))
+        h1 = float(problem.energy(f64(t_end), jnp.asarray(q, f64), jnp.asarray(p, f64)))
+        row["ham_drift"] = abs(h1 - h0) / abs(h0)
+
+
 SWEEP_COLUMNS = (
     "problem", "dt", "dtype", "nodes", "width", "activation", "solver", "lam", "initial_guess",
-    "steps", "max_iterations", "acceptance", "status", "ref_err", "ham_drift", "iterations",
-    "steps_done", "total_s", "message",
+    "steps", "max_iterations", "acceptance", "controller", "status", "result", "ref_err",
+    "err_t1", "ham_drift", "iterations", "steps_done", "rejected", "reached", "t_end",
+    "total_s", "message",
 )
 
 
@@ -412,11 +503,116 @@ def stability_sweep(
     return rows
 
 
+def _controller(row: dict[str, Any]) -> str:
+    """A row's controller (rows of CSVs written before the column: `"constant"`)."""
+    return row.get("controller") or "constant"
+
+
+def accuracy_tolerance(dtype: str) -> float:
+    """The largest `err_t1` of an *accurate* case: `ACCURATE_FRACTION` (1 % of the motion's
+    size), or `√eps` of `dtype` where that is larger (float16: 3.1 %)."""
+    return max(ACCURATE_FRACTION, float(np.finfo(np.dtype(dtype)).eps) ** 0.5)
+
+
+def outcome(row: dict[str, Any]) -> str:
+    """How a case ended, in the target's three classes: `"failed"` (a non-successful result,
+    or an exception: the solve said it failed), `"accurate"` (successful, with a finite
+    `err_t1` at most `accuracy_tolerance(dtype)`), or `"wrong"` (successful but not
+    accurate: a silent failure)."""
+    result = row.get("result")
+    if result is None:  # an exception, or a row written before the column
+        return "failed" if str(row.get("status", "")).startswith("error") else "wrong"
+    if result != "successful":
+        return "failed"
+    err = row.get("err_t1")
+    if err is None or not np.isfinite(err) or err > accuracy_tolerance(row["dtype"]):
+        return "wrong"
+    return "accurate"
+
+
+def _strict_rows(rows: Iterable[dict[str, Any]], controller: str) -> list[dict[str, Any]]:
+    return [r for r in rows if (r.get("acceptance") or "strict") == "strict"
+            and _controller(r) == controller]
+
+
+def stability_target(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
+    """The restated target, measured on the rows of a sweep (our convergence test only).
+
+    **Returns** a dict with
+
+    - `"rates"`: per `(solver, dtype)`, over the constant-step cases with `dt ≤ LARGE_DT`:
+      `cases`, `converged`, `rate`, `target` (`TARGET_RATES`) and `met`;
+    - `"large"`: per `(solver, dtype)`, over the constant-step cases with `dt > LARGE_DT`:
+      the counts of `outcome`s (`accurate`, `failed`, `wrong`) and `cases`;
+    - `"retry"`: per `(solver, dtype)`, over the same cases under `RetryFailedSteps`:
+      `cases`, `reached` (`t1`) and the largest `err_t1` of those that reached it;
+    - `"pairs"`: one dict per large-step case: its fields, `outcome` and `err_t1` with
+      constant steps, and `reached`, `err_t1`, `steps`, `rejected` under `RetryFailedSteps`
+      (`None` where that run is not in `rows`);
+    - `"met"`: the rates met, no `wrong` case, and every float64 and float32 retry run at
+      `t1` (float16 is reported, not required); `False` where a part has no cases.
+    """
+    rows = list(rows)
+    constant = _strict_rows(rows, "constant")
+    retried = _strict_rows(rows, "retry")
+    keyed = lambda r: (r["solver"], r["dtype"])  # noqa: E731
+    out: dict[str, Any] = {"rates": {}, "large": {}, "retry": {}, "pairs": []}
+    for r in constant:
+        if r["dt"] <= LARGE_DT:
+            g = out["rates"].setdefault(keyed(r), dict(cases=0, converged=0))
+            g["cases"] += 1
+            g["converged"] += converged(r["status"])
+        else:
+            g = out["large"].setdefault(keyed(r), dict(cases=0, accurate=0, failed=0, wrong=0))
+            g["cases"] += 1
+            g[outcome(r)] += 1
+    for (_, dtype), g in out["rates"].items():
+        g["rate"] = g["converged"] / g["cases"]
+        g["target"] = TARGET_RATES[dtype]
+        g["met"] = g["rate"] >= g["target"]
+    fields = [f.name for f in dataclasses.fields(StabilityCase) if f.name != "controller"]
+    by_case = {tuple(r[f] for f in fields if f != "lam"): r for r in retried}
+    for r in retried:
+        g = out["retry"].setdefault(keyed(r), dict(cases=0, reached=0, max_err_t1=None))
+        g["cases"] += 1
+        if _reached(r):
+            g["reached"] += 1
+            if r.get("err_t1") is not None:
+                g["max_err_t1"] = max(g["max_err_t1"] or 0.0, r["err_t1"])
+    for r in constant:
+        if r["dt"] <= LARGE_DT:
+            continue
+        twin = by_case.get(tuple(r[f] for f in fields if f != "lam"))
+        out["pairs"].append(dict(
+            problem=r["problem"], dt=r["dt"], dtype=r["dtype"], activation=r["activation"],
+            solver=r["solver"], outcome=outcome(r), result=r.get("result"),
+            err_t1=r.get("err_t1"),
+            retry_reached=None if twin is None else _reached(twin),
+            retry_err_t1=None if twin is None else twin.get("err_t1"),
+            retry_steps=None if twin is None else twin.get("steps_done"),
+            retry_rejected=None if twin is None else twin.get("rejected"),
+        ))
+    required = [g for (_, dtype), g in out["retry"].items() if dtype != "float16"]
+    out["met"] = bool(
+        out["rates"] and all(g["met"] for g in out["rates"].values())
+        and out["large"] and all(g["wrong"] == 0 for g in out["large"].values())
+        and required and all(g["reached"] == g["cases"] for g in required)
+    )
+    return out
+
+
+def _reached(row: dict[str, Any]) -> bool:
+    return row.get("reached") in (True, "True", 1)
+
+
 def convergence_rates(rows: Iterable[dict[str, Any]], by: str = "dtype") -> dict[str, dict]:
     """Per value of `by`: cases, converged (`ok` only), measured (`ok` + `maxiter`), the rate,
-    and medians of `ref_err`, `ham_drift`, `iterations` over the measured cases."""
+    and medians of `ref_err`, `ham_drift`, `iterations` over the measured cases. Only the
+    constant-step cases count (the runs under `RetryFailedSteps` are `stability_target`'s)."""
     groups: dict[str, list] = {}
     for r in rows:
+        if _controller(r) != "constant":
+            continue
         groups.setdefault(str(r[by]), []).append(r)
     out = {}
     for key, rs in sorted(groups.items()):
