@@ -112,8 +112,9 @@ def test_target_table_and_csv_round_trip(tmp_path):
     # the reference's tables below count the constant-step cases only
     assert "| float64 | ours | 4 | 3 | 75 % |" in text
     # rows of a CSV written before the target's columns: the old tables only
-    old = [{k: v for k, v in r.items() if k not in ("result", "controller")} for r in rows
-           if r["controller"] == "constant"]
+    constant = [r for r in rows if r["controller"] == "constant"]
+    assert "Target not checked: no runs under" in report.stability_target_table(constant)
+    old = [{k: v for k, v in r.items() if k not in ("result", "controller")} for r in constant]
     assert not report.stability_table(old).startswith("Restated target")
 
 
