@@ -31,11 +31,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
+
+from .precision import lapack_dtype
 
 __all__ = [
     "KineticStructure", "PicardPlan", "PicardSolve", "extrapolation", "kinetic_structure",
-    "picard_plan", "picard_solve", "start_at_rest", "step_residual",
+    "picard_plan", "picard_solve", "newton_solve", "start_at_rest", "step_residual",
 ]
 
 # Updates made without a test in between, before the loop that tests each one.
@@ -187,23 +190,27 @@ def picard_plan(span, weights) -> PicardPlan | None:
     )
 
 
-def _combine(matrix: np.ndarray, values: Array) -> Array:
+def _combine(matrix: np.ndarray, values: Array, fused: bool = True) -> Array:
     """`matrix @ values` for a constant `matrix` (`(m, n)` against `(n, D)`), laid out for
     how it runs: alone, as one fused multiply and a reduction over the minor axis (a `dot`
     of these sizes costs more in its call than in its arithmetic); under `vmap`, as one
-    batched `dot` (where the fused form's reduction runs over a strided axis)."""
+    batched `dot` (where the fused form's reduction runs over a strided axis). `fused=False`
+    is the plain product, for what is differentiated (the layouts have no derivative rule)."""
     constant = np.asarray(matrix, np.float64)
 
-    @jax.custom_batching.custom_vmap
-    def apply(values):
+    def product(values):
         m = jnp.asarray(constant, values.dtype)
         return jnp.sum(m[None, :, :] * values.T[:, None, :], axis=-1).T
+
+    if not fused:
+        return jnp.einsum("ij,jd->id", jnp.asarray(constant, values.dtype), values)
+    apply = jax.custom_batching.custom_vmap(product)
 
     @apply.def_vmap
     def _batched(axis_size, in_batched, values):
         del axis_size
         if not in_batched[0]:
-            return apply(values), False
+            return product(values), False
         m = jnp.asarray(constant, values.dtype)
         return jnp.einsum("ij,bjd->bid", m, values), True
 
@@ -218,13 +225,17 @@ def _outer(vector: np.ndarray, row: Array) -> Array:
 class PicardSolve(NamedTuple):
     """How the iteration ended: the unknowns `z = (δc, Δp)`, the node values `(F, G)` it
     ended with (the forces at the nodes of the last curve, and the momentum's offsets), the
-    updates made, the last relative change of those values, and whether it converged."""
+    updates made, the residual's size at the last update, whether it converged, how it
+    failed where it did not (0: a value not finite, 1: the changes grew, 2: too many
+    updates), and the unknowns it started from."""
 
     unknowns: tuple[Array, Array]
     values: tuple[Array, Array]
     iterations: Array
     residual: Array
     converged: Array
+    failure: Array
+    start: tuple[Array, Array]
 
 
 class _Carry(NamedTuple):
@@ -316,7 +327,6 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
     that its fixed point is their root as rounded in this step (constant maps rounded once,
     when the step is traced, would put the same error into every step: an energy drift)."""
     dtype = ctx.q0.dtype
-    eps = float(jnp.finfo(dtype).eps)
     h, p0 = ctx.h, ctx.p0
     kinetic = _kinetic(structure, ctx)
     k = plan.xf.shape[0] - 1
@@ -326,16 +336,54 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
     x = h * _combine(plan.xf, f0) + _combine(plan.xg, g0) + _outer(plan.xp, p0)
     z0 = (jnp.where(live, h * kinetic.times_minv(x[:k]), 0).astype(dtype), x[k].astype(dtype))
 
+    def correction(z, r, cont):
+        rows = jnp.concatenate([jnp.where(live, r, 0), kinetic.times_mass(cont[None]) / h])
+        dx = -_combine(plan.kinv, rows)
+        return jnp.where(live, h * kinetic.times_minv(dx[:k]), 0), dx[k]
+
+    end = _iterate(z0, f0, residual, correction, UNROLLED)
+    return _solved(structure, ctx, span, kinetic, end, g0, z0)
+
+
+def newton_solve(structure: KineticStructure, ctx, span, start: PicardSolve,
+                residual, differentiable) -> PicardSolve:
+    """The same equations by Newton's iteration, `z ← z − J(z)⁻¹ (r, c)` with the whole
+    Jacobian `J` (forward derivatives of `differentiable`, the same equations written so that
+    they have derivatives: `step_residual(..., fused=False)`), from the Jacobian-free
+    iteration's start: for a step that iteration does not contract on (a stiff force at a
+    long step). It stops by the same rules, and fails where it does not converge either."""
+    z0 = start.start
+    f0, g0 = start.values
+    _, unravel = ravel_pytree(z0)
+
+    def flat_residual(x):
+        return ravel_pytree(differentiable(unravel(x))[0])[0]
+
+    def correction(z, r, cont):
+        jacobian = jax.jacfwd(flat_residual)(ravel_pytree(z)[0])
+        rhs = ravel_pytree((r, cont))[0]
+        work = lapack_dtype(rhs.dtype)  # LAPACK has no float16
+        dz = jnp.linalg.solve(jacobian.astype(work), rhs.astype(work))
+        return unravel(-dz.astype(rhs.dtype))
+
+    end = _iterate(z0, f0, residual, correction, 0)
+    solved = _solved(structure, ctx, span, _kinetic(structure, ctx), end, g0, z0)
+    return solved._replace(iterations=solved.iterations + start.iterations)
+
+
+def _iterate(z0, f0, residual, correction, unrolled: int) -> _Carry:
+    """`z ← z + correction(z, r, c)` from `z0` until the change is at round-off (predicted or
+    seen), growing, not finite, or `MAX_UPDATES` were made; the first `unrolled` updates
+    without a test in between."""
+    dtype = z0[1].dtype
+    eps = float(jnp.finfo(dtype).eps)
     tiny = jnp.finfo(dtype).tiny
 
     def update(c: _Carry) -> _Carry:
         (r, cont), f = residual(c.z)
-        r = jnp.where(live, r, 0)
-        rows = jnp.concatenate([r, kinetic.times_mass(cont[None]) / h])
-        dx = -_combine(plan.kinv, rows)
-        dc = jnp.where(live, h * kinetic.times_minv(dx[:k]), 0)
-        dz = jnp.concatenate([dc, dx[k:]])
-        z = (c.z[0] + dc, c.z[1] + dx[k])
+        dc, dp = correction(c.z, r, cont)
+        dz = jnp.concatenate([dc, dp[None]])
+        z = (c.z[0] + dc, c.z[1] + dp)
         # the three sizes the tests need, in one reduction (one kernel)
         delta, size, fsize = jnp.max(jnp.abs(jnp.stack([
             dz, jnp.concatenate([z[0], z[1][None]]), jnp.concatenate([r, cont[None]]),
@@ -362,30 +410,37 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
     zero = jnp.array(0, jnp.int32)
     no = jnp.array(False)
     carry = _Carry(z0, f0, inf, inf, inf, zero, zero, no, no)
-    for _ in range(UNROLLED):
+    for _ in range(unrolled):
         carry = update(carry)
-    end = jax.lax.while_loop(lambda c: ~c.done, update, carry)
+    return jax.lax.while_loop(lambda c: ~c.done, update, carry)
+
+
+def _solved(structure, ctx, span, kinetic, end: _Carry, g0, z0) -> PicardSolve:
+    dtype = ctx.q0.dtype
     g = g0
     if structure.offset_moves:  # the offsets of the last curve, for the next step's start
         q, dq = _curve_at_nodes(span, end.z[0], ctx.q0)
-        p, _ = _momenta_and_forces(ctx, q, dq / h)
-        g = p - kinetic.times_mass(dq / h)
+        p, _ = _momenta_and_forces(ctx, q, dq / ctx.h)
+        g = p - kinetic.times_mass(dq / ctx.h)
+    failure = jnp.where(jnp.isfinite(end.change), jnp.where(end.growth > MAX_GROWTH, 1, 2), 0)
     return PicardSolve(end.z, (end.f, g), end.updates, end.residual.astype(dtype),
-                       end.converged)
+                       end.converged, failure, z0)
 
 
-def step_residual(plan: PicardPlan, ctx, z) -> tuple[tuple[Array, Array], Array]:
+def step_residual(plan: PicardPlan, ctx, z, fused: bool = True
+                  ) -> tuple[tuple[Array, Array], Array]:
     """The projected step's equations at `z = (δc, Δp)` on a uniform span
     (`VariableProjection.reduced_residual_and_forces`, with the span's constants as NumPy
     arrays): `((r, c), f)`, `r` along each direction (`δc` itself where pinned), `c` the
-    continuity `−Σ_k g0_k δc_k`, `f` the forces at the nodes."""
+    continuity `−Σ_k g0_k δc_k`, `f` the forces at the nodes. `fused=False` writes its
+    products plainly, for a Jacobian."""
     dc, dp = z
     dtype = dc.dtype
     h, p0 = ctx.h, ctx.p0
     r_nodes = plan.gq.shape[0]
     # values, slopes and −g0·δc as one product; the weighted sums of forces and momenta as
     # another (a product is a kernel of its own)
-    curve = _combine(np.concatenate([plan.gq, plan.gv, -plan.g0[None]]), dc)
+    curve = _combine(np.concatenate([plan.gq, plan.gv, -plan.g0[None]]), dc, fused)
     q = ctx.q0 + curve[:r_nodes]
     v = curve[r_nodes:2 * r_nodes] / h
     c = curve[2 * r_nodes]
@@ -395,7 +450,7 @@ def step_residual(plan: PicardPlan, ctx, z) -> tuple[tuple[Array, Array], Array]
     # stationarity of one discrete action (a fixed rounding of `b·gq` is a drift, not noise)
     b = jnp.asarray(plan.b, dtype)[:, None]
     sums = _combine(np.concatenate([plan.gq, plan.gv]).T,
-                    jnp.concatenate([(h * b) * f, b * p.astype(dtype)]))
+                    jnp.concatenate([(h * b) * f, b * p.astype(dtype)]), fused)
     g0, gd = (jnp.asarray(a, dtype)[:, None] for a in (plan.g0, plan.gd))
     r = dp * g0 + dp * gd + p0 * gd - sums
     r = jnp.where(jnp.asarray(plan.live)[:, None], r, dc)

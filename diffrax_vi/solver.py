@@ -34,6 +34,7 @@ from .nonlinear import LevenbergMarquardt
 from .picard import (
     extrapolation,
     kinetic_structure,
+    newton_solve,
     picard_plan,
     picard_solve,
     start_at_rest,
@@ -331,7 +332,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def _picard_step(self, ctx, state, made_jump, plan, structure, span):
         """The projected step by the Jacobian-free iteration, started from the previous
         step's node values continued (`picard.extrapolation`); where it does not converge,
-        the root finder's own solve from the seed policy's start."""
+        Newton's iteration on the same equations from the same start
+        (`picard.newton_solve`), and a failure result where that does not either."""
         form = self.formulation
         seeding = self.seeder
         record = seeding.after_jump(state.seed, made_jump)
@@ -353,39 +355,34 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         def residual(z):
             return form.reduced_residual(z, known)
 
-        def solve(ctx, f_start, g_start, state, record):
+        def solve(ctx, f_start, g_start):
             def residual_and_forces(z):
                 return step_residual(plan, ctx, z)
 
             picard = picard_solve(plan, structure, ctx, span, (f_start, g_start),
                                   residual_and_forces)
-            done = (picard.unknowns, (picard.values, picard.iterations,
-                    diffrax.RESULTS.successful, picard.residual, jnp.array(False)))
 
             def fallback():
-                seed = seeding.seed(ctx, record, made_jump, state.report.residual,
-                                    state.last_iterations)
-                solved = solve_projected(
-                    self, ctx, *seed.start, restart_history=seed.restart_history
-                )
-                g = g_start
-                if structure.offset_moves:
-                    q, dq = form.node_values(solved.unknowns[0], span, ctx.q0)
-                    p, _ = node_momenta_and_forces(ctx, q, dq)
-                    mass = jax.hessian(lambda v: ctx.term(ctx.t, ctx.q0, v, ctx.args))(
-                        jnp.zeros_like(ctx.q0))
-                    g = p - (dq / ctx.h) @ mass
-                return (solved.unknowns, ((solved.forces, g.astype(ctx.p0.dtype)),
-                        solved.iterations + picard.iterations, solved.result,
-                        solved.residual, jnp.array(True)))
+                return newton_solve(structure, ctx, span, picard, residual_and_forces,
+                                   lambda z: step_residual(plan, ctx, z, fused=False))
 
-            return unless_all_skip(~picard.converged, fallback, done)
+            solved = unless_all_skip(~picard.converged, fallback, picard)
+            result = diffrax.RESULTS.where(
+                solved.converged, diffrax.RESULTS.successful,
+                diffrax.RESULTS.where(
+                    solved.failure == 0, STEP_FAILURES["vi_step_nonfinite"],
+                    diffrax.RESULTS.where(solved.failure == 1, STEP_FAILURES["vi_step_stalled"],
+                                          STEP_FAILURES["vi_step_max_iterations"]),
+                ),
+            )
+            return solved.unknowns, (solved.values, solved.iterations, result, solved.residual,
+                                     ~picard.converged)
 
         # The iteration runs on values without derivatives (the root's come below): nothing of
         # it is differentiated or kept for a derivative.
         frozen = jax.tree_util.tree_map(
             lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x,
-            (ctx, f_start, g_start, state, record),
+            (ctx, f_start, g_start),
         )
         found, (values, n, result, residual_size, restarted) = solve(*frozen)
         # The step's derivatives are those of its root (implicit differentiation of the
