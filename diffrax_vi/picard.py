@@ -120,7 +120,8 @@ def kinetic_structure(term, t, q, args) -> KineticStructure | None:
             zeros = jax.tree_util.tree_map(
                 lambda a: np.zeros(a.shape, a.dtype), (jnp.asarray(t), q, v, dynamic)
             )
-            known = np.asarray(mass(*zeros), np.float64)
+            # one compiled program (op by op, each operation would compile on its own)
+            known = np.asarray(jax.jit(mass)(*zeros), np.float64)
     return KineticStructure(
         mass_constant=mass_constant,
         offset_moves=bool(used_offset[0] or used_offset[1]),
