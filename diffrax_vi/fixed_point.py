@@ -145,9 +145,10 @@ class FixedPointIteration(RoundoffNewton):
     - `picard`: where the projected step's Lagrangian has a constant kinetic matrix
       `∂²L/∂v²` and its span is known when the step is traced (`CGVI`, a network's fixed
       layer), iterate the forces at the nodes directly instead (`diffrax_vi.picard`: no
-      Jacobian at all), and take the iteration above only where that does not converge.
-      Default `False`: over 10⁶ steps its energy error still grows linearly (the
-      benchmarks page), where the chord iteration's follows Brouwer's law.
+      Jacobian at all), and Newton's iteration on the same equations where that does not
+      converge. Default `False`: a step on which neither converges fails (with a failure
+      result), where the iteration above, with the seed policy's restarts, still finds
+      roots of some stiff steps.
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 
