@@ -15,9 +15,9 @@ steps, alone and per member-step of a `vmap` over `--members` orbits (e in [0.1,
   error is not comparable).
 
 Then the first call of a fresh process (trace, compile and one run; no persistent
-compilation cache) of `CGVI(6)` and `NetworkVI` against `diffrax.Dopri8`'s on the same
-problem, double pendulum and Kepler, 10 steps each: `--fresh` runs, interleaved, medians and
-their ratios.
+compilation cache) of `CGVI(6)` (its default and the engine) and `NetworkVI` against
+`diffrax.Dopri8`'s on the same problem, double pendulum and Kepler, 10 steps each: `--fresh`
+runs, interleaved, medians and their ratios.
 
     .venv/bin/python -m benchmarks.step_floor [--degree 6] [--members 256] [--fresh 5]
 """
@@ -120,7 +120,8 @@ def step_costs(args) -> list[str]:
     }
     lines = [f"# Kepler e = 0.5, h = 2pi/{args.steps_per_orbit}, {orbits} orbits alone, "
              f"{args.ensemble_orbits} orbits x {args.members} members under vmap"]
-    lines.append(f"{'solver':34s} {'us/step':>9s} {'us/member-step':>15s} {'error':>9s}")
+    lines.append(f"{'solver':34s} {'us/step':>9s} {'us/member-step':>15s} {'error':>9s} "
+                 f"{'updates/step':>12s}")
     q0, p0 = kepler_states([0.5])
     qs, ps = kepler_states(np.linspace(0.1, 0.6, args.members))
     m = args.steps_per_orbit * args.ensemble_orbits
@@ -155,8 +156,15 @@ def step_costs(args) -> list[str]:
         batch_seconds = _timed(many, qs, ps, repeats=max(1, args.repeats // 2))
         _, batch_steps = many(qs, ps)
         per_member = batch_seconds / (args.members * float(np.mean(np.asarray(batch_steps))))
+        updates = "-"
+        if name in solvers:  # the nonlinear updates per step, from the solver's state
+            state = diffrax.diffeqsolve(
+                term, solver, 0.0, n * h, h, (q0[0], p0[0]), max_steps=n,
+                saveat=diffrax.SaveAt(t1=True, solver_state=True),
+            ).solver_state
+            updates = f"{float(state.iterations) / float(state.steps):.2f}"
         lines.append(f"{name:34s} {seconds / int(steps) * 1e6:9.2f} {per_member * 1e6:15.3f} "
-                     f"{error:9.1e}")
+                     f"{error:9.1e} {updates:>12s}")
     floor = gauss_floor(degree + 1, h, args.floor_updates)
     one = jax.jit(lambda q, p: jax.lax.scan(floor, (q, p), None, length=n)[0])
     seconds = _timed(one, q0[0], p0[0], repeats=args.repeats)
@@ -178,7 +186,9 @@ import diffrax, diffrax_vi as dvi
 from diffrax_vi import problems
 name, which = sys.argv[1], sys.argv[2]
 problem = getattr(problems, name)()
+engine = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
 solver = {"Dopri8": diffrax.Dopri8(), "CGVI(6)": dvi.CGVI(6),
+          "CGVI(6) engine": dvi.CGVI(6, root_finder=engine),
           "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))}[which]
 h = float(problem.dt)
 t0 = time.perf_counter()
@@ -193,7 +203,7 @@ def first_calls(args) -> list[str]:
     lines = [f"# first call in a fresh process (trace + compile + run, 10 steps), median of "
              f"{args.fresh} interleaved runs"]
     for problem in ("double_pendulum", "kepler"):
-        times = {which: [] for which in ("Dopri8", "CGVI(6)", "NetworkVI")}
+        times = {which: [] for which in ("Dopri8", "CGVI(6)", "CGVI(6) engine", "NetworkVI")}
         for _ in range(args.fresh):
             for which in times:
                 out = subprocess.run(
@@ -204,7 +214,7 @@ def first_calls(args) -> list[str]:
         dopri = statistics.median(times["Dopri8"])
         for which, values in times.items():
             median = statistics.median(values)
-            lines.append(f"{problem:16s} {which:10s} median {median:6.2f} s "
+            lines.append(f"{problem:16s} {which:14s} median {median:6.2f} s "
                          f"({', '.join(f'{v:.2f}' for v in values)}), "
                          f"{median / dopri:4.2f}x Dopri8")
     return lines

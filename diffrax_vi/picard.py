@@ -368,7 +368,7 @@ def newton_solve(structure: KineticStructure, ctx, span, start: PicardSolve,
         return unravel(-dz.astype(rhs.dtype))
 
     end = _iterate(z0, f0, residual, correction, 0)
-    solved = _solved(structure, ctx, span, _kinetic(structure, ctx), end, g0, z0)
+    solved = _solved(structure, ctx, span, None, end, g0, z0)
     return solved._replace(iterations=solved.iterations + start.iterations)
 
 
@@ -416,10 +416,12 @@ def _iterate(z0, f0, residual, correction, unrolled: int) -> _Carry:
     return jax.lax.while_loop(lambda c: ~c.done, update, carry)
 
 
-def _solved(structure, ctx, span, kinetic, end: _Carry, g0, z0) -> PicardSolve:
+def _solved(structure, ctx, span, kinetic: _Kinetic | None, end: _Carry, g0, z0
+            ) -> PicardSolve:
     dtype = ctx.q0.dtype
     g = g0
     if structure.offset_moves:  # the offsets of the last curve, for the next step's start
+        kinetic = kinetic or _kinetic(structure, ctx)
         q, dq = _curve_at_nodes(span, end.z[0], ctx.q0)
         p, _ = _momenta_and_forces(ctx, q, dq / ctx.h)
         g = p - kinetic.times_mass(dq / ctx.h)

@@ -272,21 +272,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 solved.residual, solved.tolerance, solved.restarted,
             )
             forces = solved.forces
-            if self.compensated:
-                (q1, eq), (p1, ep) = (
-                    compensated_add(x, d, e)
-                    for x, d, e in zip((ctx.q0, ctx.p0), (dq, dp), state.compensation,
-                                       strict=True)
-                )
-                compensation = (eq, ep)
-            else:
-                q1, p1 = ctx.q0 + dq.astype(ctx.q0.dtype), ctx.p0 + dp.astype(ctx.p0.dtype)
-                compensation = state.compensation
-            # A first-order Lagrangian's end state is moved onto its primary constraint
-            # (no change for any other); a moved coordinate carries no compensation.
-            moved, violation = end_on_constraint(ctx, q1, p1)
-            compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
-            q1 = moved
+            q1, p1, compensation, violation = self._end_state(ctx, state, dq, dp, True)
         else:
             theta, (q1, p1), n, result, residual, tolerance, restarted = solve_all(
                 self, ctx, seed
@@ -391,6 +377,20 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         residual = residual_size
         theta = form.expand(form.coefficients(z[0], ctx), span)
         dq, dp = form.projected_increments(z, span, ctx)
+        # a kinetic matrix known to be constant and invertible: regular, no constraint
+        q1, p1, compensation, violation = self._end_state(ctx, state, dq, dp,
+                                                          structure.mass is None)
+        seed = Seed(None, ~fresh, jnp.array(False))
+        return self._finish_step(
+            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
+            compensation, violation, values[0], node_values=values,
+        )
+
+    def _end_state(self, ctx, state, dq, dp, on_constraint: bool):
+        """`(q1, p1, compensation, violation)`: the step's start plus its increments
+        (compensated where `NetworkVI.compensated`); where `on_constraint`, a first-order
+        Lagrangian's end state is moved onto its primary constraint (no change for any
+        other; a moved coordinate carries no compensation), else its violation is zero."""
         if self.compensated:
             (q1, eq), (p1, ep) = (
                 compensated_add(x, d, e)
@@ -398,18 +398,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
             compensation = (eq, ep)
         else:
-            q1, p1 = ctx.q0 + dq, ctx.p0 + dp
+            q1, p1 = ctx.q0 + dq.astype(ctx.q0.dtype), ctx.p0 + dp.astype(ctx.p0.dtype)
             compensation = state.compensation
-        violation = jnp.zeros((), dtype)  # a constant, invertible kinetic matrix: regular
-        if structure.mass is None:
-            moved, violation = end_on_constraint(ctx, q1, p1)
-            compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
-            q1 = moved
-        seed = Seed(None, ~fresh, jnp.array(False))
-        return self._finish_step(
-            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-            compensation, violation, values[0], node_values=values,
-        )
+        if not on_constraint:
+            return q1, p1, compensation, jnp.zeros((), ctx.q0.dtype)
+        moved, violation = end_on_constraint(ctx, q1, p1)
+        compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
+        return moved, p1, compensation, violation
 
     def _finish_step(
         self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,

@@ -337,27 +337,21 @@ class _Compiled:
         term, args = self.problem.term, self.problem.args
         steps = case.steps
 
-        if case.controller == "retry":
+        retry = case.controller == "retry"
 
-            @eqx.filter_jit
-            def solve(y0, ts, reference, lam):
-                solver = case.build(reference=reference, lam=lam)
-                return diffrax.diffeqsolve(
-                    term, solver, ts[0], ts[-1], ts[1] - ts[0], y0, args=args,
-                    saveat=diffrax.SaveAt(t1=True, solver_state=True),
-                    stepsize_controller=RetryFailedSteps(), max_steps=RETRY_MAX_STEPS,
-                    throw=False,
-                )
-        else:
-
-            @eqx.filter_jit
-            def solve(y0, ts, reference, lam):
-                solver = case.build(reference=reference, lam=lam)
-                return diffrax.diffeqsolve(
-                    term, solver, ts[0], ts[-1], None, y0, args=args,
-                    saveat=diffrax.SaveAt(t0=True, steps=True, solver_state=True),
-                    stepsize_controller=diffrax.StepTo(ts), max_steps=steps, throw=False,
-                )
+        @eqx.filter_jit
+        def solve(y0, ts, reference, lam):
+            solver = case.build(reference=reference, lam=lam)
+            if retry:
+                dt0, controller, max_steps = ts[1] - ts[0], RetryFailedSteps(), RETRY_MAX_STEPS
+                saveat = diffrax.SaveAt(t1=True, solver_state=True)
+            else:
+                dt0, controller, max_steps = None, diffrax.StepTo(ts), steps
+                saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
+            return diffrax.diffeqsolve(
+                term, solver, ts[0], ts[-1], dt0, y0, args=args, saveat=saveat,
+                stepsize_controller=controller, max_steps=max_steps, throw=False,
+            )
 
         self.solve = solve
 
