@@ -20,6 +20,7 @@ at least as accurate (both below 1e-14 counts as equal) and the ratio of its tim
 
     .venv/bin/python -m benchmarks.peers_side_by_side [--quick] [--out FILE] [--repeats 5]
         [--members 256] [--threads 2] [--only kepler henon_heiles ensemble] [--degrees 6 8]
+        [--engine]
 
 `--quick` is a smoke run (2 orbits, T = 10, 8 members over one orbit, one CGVI configuration
 per section); its time is mostly the compilation of the three CGVI solves.
@@ -154,8 +155,16 @@ def row(out: Out, solver, setting, steps, err, best, median, compile_s, status="
         f"{fmt_s(median):>11} {compile_s:8.2f}s {status}")
 
 
-def compare(problem_name: str, problem, reference, what: str, grid: dict, repeats: int,
-            out: Out, step_label) -> dict:
+def cgvi(degree: int, config: dict):
+    """`CGVI(degree)`, with the Jacobian-free engine where `--engine` asked for it."""
+    if config.get("engine"):
+        return dvi.CGVI(degree, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True,
+                                                                    picard=True))
+    return dvi.CGVI(degree)
+
+
+def compare(problem_name: str, problem, reference, what: str, config: dict, grid: dict,
+            repeats: int, out: Out, step_label) -> dict:
     """heyoka, CGVI over `grid` and Dopri8 on `problem`; returns the rows for the summary."""
     results = {"heyoka": [], "cgvi": [], "dopri8": []}
     out()
@@ -173,7 +182,7 @@ def compare(problem_name: str, problem, reference, what: str, grid: dict, repeat
     for degree, settings in grid.items():
         for setting in settings:
             h, steps, label = step_label(setting, span)
-            solve = fixed_solve(problem, dvi.CGVI(degree), h, steps)
+            solve = fixed_solve(problem, cgvi(degree, config), h, steps)
             try:
                 ((q, p), ok, taken), compile_s, best, median = timed_jax(
                     solve, problem.y0, repeats=repeats)
@@ -222,7 +231,7 @@ def kepler_section(config: dict, repeats: int, out: Out) -> dict:
         return span / steps, steps, f"h = 2pi/{per_orbit}"
 
     return compare(f"Kepler e = 0.5, {orbits} orbits", problem, reference, "position",
-                   config["kepler_grid"], repeats, out, label)
+                   config, config["kepler_grid"], repeats, out, label)
 
 
 def henon_heiles_section(config: dict, repeats: int, out: Out) -> dict:
@@ -244,7 +253,7 @@ def henon_heiles_section(config: dict, repeats: int, out: Out) -> dict:
         return span / steps, steps, f"h = {h:g}"
 
     return compare(f"Henon-Heiles q0 = p0 = (0.1, 0.1), T = {problem.t1:g}", problem,
-                   (ref.q, ref.p), "state", config["hh_grid"], repeats, out, label)
+                   (ref.q, ref.p), "state", config, config["hh_grid"], repeats, out, label)
 
 
 def ensemble_section(config: dict, repeats: int, threads: int, out: Out) -> None:
@@ -283,7 +292,7 @@ def ensemble_section(config: dict, repeats: int, threads: int, out: Out) -> None
     for degree, per_orbit in config["ensemble_cgvi"]:
         steps = per_orbit * orbits
         h = t1 / steps
-        solver = dvi.CGVI(degree)
+        solver = cgvi(degree, config)
 
         def member(y, solver=solver, h=h, steps=steps):
             sol = diffrax.diffeqsolve(term, solver, 0.0, t1, h, y,
@@ -323,6 +332,8 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true",
                         help="a smoke run: 2 orbits, T = 10, one CGVI configuration each, "
                              "8 members over 1 orbit")
+    parser.add_argument("--engine", action="store_true",
+                        help="CGVI with FixedPointIteration(ftol=0, predict=True, picard=True)")
     parser.add_argument("--out", default=None, help="also write the tables to this file")
     parser.add_argument("--repeats", type=int, default=None,
                         help="timed runs after the warm-up (default 5; 2 with --quick)")
@@ -342,6 +353,7 @@ def main(argv=None) -> None:
         config["ensemble_cgvi"] = tuple(c for c in config["ensemble_cgvi"] if c[0] in keep)
     if args.members is not None:
         config["members"] = args.members
+    config["engine"] = args.engine
     repeats = args.repeats if args.repeats is not None else (2 if args.quick else 5)
     if repeats < 1:
         parser.error("--repeats must be at least 1")
