@@ -26,13 +26,13 @@ from .ansatz.dense import DenseNetBasis
 from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
 from .ansatz.symmetry import MirrorPairs, SharedMirrorPairs
-from .fixed_point import FixedPointIteration
 from .formulation import AbstractFormulation, FreeEndpoints, InterpolatingEndpoints
-from .nonlinear import AbstractDampedNewton, RegularisedNewton
 from .oga import OGA, OGA1d, OGA1dNormalized
 from .parameter_seed import AbstractParameterSeed
 from .projection import VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
+from .root_finders.damped_newton import AbstractDampedNewton, RegularisedNewton
+from .root_finders.fixed_point import FixedPointIteration
 from .seeding.fit import InitialWeights, LeastSquaresFit
 from .seeding.policy import SeedPolicy
 from .seeding.training import LSGD

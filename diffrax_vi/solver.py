@@ -28,9 +28,9 @@ from .formulation import (
     node_momenta_and_forces,
     stage_values,
 )
+from .hidden_layers import UniformLayer
 from .interpolation import NetworkInterpolation
 from .lazy import unless_all_skip
-from .nonlinear import LevenbergMarquardt
 from .picard import (
     extrapolation,
     kinetic_structure,
@@ -41,9 +41,11 @@ from .picard import (
     step_residual,
 )
 from .precision import compensated_add
-from .projection import RoundoffNewton, UniformLayer, VariableProjection
+from .projection import VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport
+from .root_finders.damped_newton import LevenbergMarquardt
+from .root_finders.newton import RoundoffNewton
 from .seeding.policy import Seed, Seeder, SeedPolicy
 from .seeding.policy import residual_scale as _residual_scale
 from .solver_options import check_options

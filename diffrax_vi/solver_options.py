@@ -11,10 +11,11 @@ import optimistix as optx
 
 from .ansatz.base import AbstractBasis
 from .formulation import AbstractFormulation, FreeEndpoints
-from .nonlinear import AbstractDampedNewton
-from .projection import RoundoffNewton, VariableProjection
+from .projection import VariableProjection
 from .quadrature import AbstractQuadrature
-from .step_hints import AbstractStepRootFinder, missing_hints
+from .root_finders.damped_newton import AbstractDampedNewton
+from .root_finders.newton import RoundoffNewton
+from .root_finders.step_hints import AbstractStepRootFinder, missing_hints
 
 __all__ = ["check_options"]
 

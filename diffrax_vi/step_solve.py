@@ -25,13 +25,13 @@ from jaxtyping import Array
 
 from .ansatz.polynomial import LagrangeBasis
 from .formulation import AbstractFormulation, FreeEndpoints, StepContext
-from .nonlinear import AbstractDampedNewton, LevenbergMarquardt
-from .projection import RoundoffNewton
 from .quadrature import GaussLegendre
 from .results import from_root_find
+from .root_finders.damped_newton import AbstractDampedNewton, LevenbergMarquardt
+from .root_finders.newton import RoundoffNewton
+from .root_finders.step_hints import StepHints, step_options
 from .seeding.policy import Seed
 from .seeding.policy import residual_scale as _residual_scale
-from .step_hints import StepHints, step_options
 
 __all__ = [
     "FIRST_TRY", "ProjectedSolve", "companion_error", "jacobian_option",

@@ -31,7 +31,7 @@ from diffrax_vi.bench import (
 )
 from diffrax_vi.bench.__main__ import main as cli_main
 from diffrax_vi.bench.stability import full_grid
-from diffrax_vi.nonlinear import LevenbergMarquardt
+from diffrax_vi.root_finders.damped_newton import LevenbergMarquardt
 
 
 @dataclasses.dataclass

@@ -10,7 +10,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.fixed_point import FixedPointIteration
+from diffrax_vi.root_finders.fixed_point import FixedPointIteration
 from diffrax_vi.step_solve import FIRST_TRY, projected_root_find
 
 jax.config.update("jax_enable_x64", True)
@@ -498,7 +498,7 @@ def test_the_hint_inverse_starts_the_iteration(given, newton):
     factorisation at the start of the chord iteration and in every Newton update; where it
     is not finite (a vanished pivot), the pivoted factorisation takes over and the solve
     ends at the same root."""
-    from diffrax_vi.step_hints import StepHints, step_options
+    from diffrax_vi.root_finders.step_hints import StepHints, step_options
 
     used = []
 
@@ -566,7 +566,7 @@ def test_predict_stops_at_an_update_that_is_rounding_noise(earlier, stops):
 # -- the loop's carry ------------------------------------------------------------------------------
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
 def test_loop_layout_packs_and_restores_the_state_exactly(dtype):
-    from diffrax_vi.projection import _LoopLayout
+    from diffrax_vi.root_finders.newton import _LoopLayout
 
     rf = FixedPointIteration(ftol=0.0, predict=True)
     state = rf.init(lambda z, a: (z * z - 2, None), jnp.ones(3, dtype), None, {}, None, None,

@@ -1,5 +1,5 @@
-"""The root finders (`diffrax_vi.nonlinear`): `LevenbergMarquardt` and `RegularisedNewton`,
-their tolerances, Jacobian options and restarts."""
+"""The damped root finders (`diffrax_vi.root_finders.damped_newton`): `LevenbergMarquardt` and
+`RegularisedNewton`, their tolerances, Jacobian options and restarts."""
 
 import jax
 import jax.numpy as jnp
@@ -8,8 +8,12 @@ import optimistix as optx
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi.nonlinear import LevenbergMarquardt, RegularisedNewton, default_tolerances
-from diffrax_vi.step_hints import StepHints, step_options
+from diffrax_vi.root_finders.damped_newton import (
+    LevenbergMarquardt,
+    RegularisedNewton,
+    default_tolerances,
+)
+from diffrax_vi.root_finders.step_hints import StepHints, step_options
 
 F64 = jnp.float64
 

@@ -9,8 +9,8 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.fixed_point import FixedPointIteration
 from diffrax_vi.picard import kinetic_structure, picard_solve, start_at_rest, step_residual
+from diffrax_vi.root_finders.fixed_point import FixedPointIteration
 
 jax.config.update("jax_enable_x64", True)
 

@@ -620,7 +620,7 @@ def test_a_known_span_is_the_span_of_jax_operation_by_operation(dtype, shape):
     before, each compiled on its own), in every precision. The reference is the same
     function on a traced hidden layer, whose other inputs are known and so evaluated
     eagerly operation by operation under `ensure_compile_time_eval`."""
-    from diffrax_vi.projection import feature_span
+    from diffrax_vi.span import feature_span
 
     k, s, d = shape  # R + 2 points, features, coordinates
     rng = np.random.default_rng(k + s + d)

@@ -1,4 +1,5 @@
-"""The typed interface between NetworkVI and its root finder (`diffrax_vi.step_hints`)."""
+"""The typed interface between NetworkVI and its root finder
+(`diffrax_vi.root_finders.step_hints`)."""
 
 import diffrax
 import jax
@@ -9,7 +10,7 @@ from jax.flatten_util import ravel_pytree
 
 import diffrax_vi as dvi
 from diffrax_vi import step_solve
-from diffrax_vi.step_hints import (
+from diffrax_vi.root_finders.step_hints import (
     HINT_FEATURES,
     AbstractStepRootFinder,
     StepHints,

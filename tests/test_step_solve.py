@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi.formulation import FreeEndpoints
-from diffrax_vi.nonlinear import LevenbergMarquardt
 from diffrax_vi.quadrature import GaussLegendre
+from diffrax_vi.root_finders.damped_newton import LevenbergMarquardt
 from diffrax_vi.seeding.fit import LeastSquaresFit
 
 F64 = jnp.float64

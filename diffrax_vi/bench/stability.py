@@ -49,9 +49,10 @@ import numpy as np
 from .. import problems as _problems
 from ..activations import elu, gelu, relu_k, tanh
 from ..ansatz.shallow import ShallowNetBasis
-from ..nonlinear import LevenbergMarquardt, RegularisedNewton
-from ..projection import RoundoffNewton, VariableProjection
+from ..projection import VariableProjection
 from ..quadrature import GaussLegendre
+from ..root_finders.damped_newton import LevenbergMarquardt, RegularisedNewton
+from ..root_finders.newton import RoundoffNewton
 from ..seeding.policy import SeedPolicy
 from ..seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
 from ..solver import NetworkVI

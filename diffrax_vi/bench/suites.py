@@ -15,8 +15,8 @@ from ..activations import gelu, tanh
 from ..ansatz.shallow import ShallowNetBasis
 from ..formulation import FreeEndpoints
 from ..methods import CGVI
-from ..nonlinear import LevenbergMarquardt
 from ..projection import VariableProjection
+from ..root_finders.damped_newton import LevenbergMarquardt
 from ..quadrature import GaussLegendre
 from ..seeding.policy import SeedPolicy
 from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep

@@ -20,12 +20,13 @@ from jaxtyping import Array, PyTree
 from ..ansatz.base import AbstractBasis
 from ..ansatz.shallow import ShallowNetBasis
 from ..formulation import AbstractFormulation, FreeEndpoints, StepContext, stage_values
+from ..hidden_layers import FirstSeedLayer, UniformLayer
 from ..lazy import unless_all_skip
-from ..nonlinear import AbstractDampedNewton
 from ..oga import AbstractOGA, OGA1d
 from ..parameter_seed import AbstractParameterSeed, fit_problem, with_constant_grid
-from ..projection import FirstSeedLayer, UniformLayer, VariableProjection
-from ..step_hints import StepHints
+from ..projection import VariableProjection
+from ..root_finders.damped_newton import AbstractDampedNewton
+from ..root_finders.step_hints import StepHints
 from .fit import refit_output_weights
 from .trajectories import (
     AbstractInitialTrajectory,

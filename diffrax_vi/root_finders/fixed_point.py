@@ -24,9 +24,9 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from .lazy import unless_all_skip
-from .precision import lapack_dtype
-from .projection import NewtonState, RoundoffNewton
+from ..lazy import unless_all_skip
+from ..precision import lapack_dtype
+from .newton import NewtonState, RoundoffNewton
 from .step_hints import hints_of
 
 __all__ = ["FixedPointIteration"]
@@ -244,23 +244,7 @@ class FixedPointIteration(RoundoffNewton):
         f_new, aux = residual(flat_y + d)
         a = jnp.ones((), dtype)
         if self.refresh is not None:
-            # A step with a Jacobian formed where it starts is Newton's: far from the root it
-            # backtracks as `RoundoffNewton` does.
-            fmax = jnp.max(jnp.abs(state.f))
-            near = fmax <= floor
-
-            def cond(carry):
-                a, f_try, _, k = carry
-                enough = jnp.max(jnp.abs(f_try)) <= (1 - 1e-4 * a) * fmax
-                return state.fresh & ~near & ~enough & (k < self.max_backtracks)
-
-            def body(carry):
-                a, _, _, k = carry
-                a = a / 2
-                f_try, aux = residual(flat_y + a * d)
-                return a, f_try, aux, k + 1
-
-            a, f_new, aux, _ = jax.lax.while_loop(cond, body, (a, f_new, aux, 0))
+            a, f_new, aux = self._backtrack(residual, flat_y, d, state, a, f_new, aux, floor)
         new = flat_y + a * d
         # the sizes the tests below need, in one reduction (one kernel in the loop)
         fmax, fmax_new, norm, size = jnp.max(
@@ -301,52 +285,83 @@ class FixedPointIteration(RoundoffNewton):
         if self.confirm:
             converged = converged & (norm <= float(jnp.finfo(dtype).eps) ** 0.5 * size)
         if self.predict:
-            # A linear iteration's remaining error is about `θ/(1 − θ)` times its last update
-            # (θ the contraction factor). It is a fixed function of the step's start, the
-            # same from step to step: stop only once it is far below one rounding unit of
-            # the unknowns (`PREDICT_MARGIN`), or it would add up to a drift over a long run.
-            # θ is the larger of the last two ratios of updates: from a poor start the
-            # update after Newton's first can shrink far more than the iteration's rate.
-            rate = jnp.maximum(contraction, state.contraction)
-            slowing = known & (rate < 1)
-            remaining = rate / jnp.where(slowing, 1 - rate, 1) * norm
-            eps = float(jnp.finfo(dtype).eps)
-            # An update at the rounding noise has a ratio of noise to signal, not the rate:
-            # there the rate is the ratio before it, and what is left is that rate times
-            # the noise's size (or less).
-            noise = NOISE_UPDATE * eps * size
-            earlier = state.contraction
-            at_noise = (norm <= noise) & (earlier > 0) & (earlier < 1)
-            remaining = jnp.where(
-                at_noise, jnp.minimum(remaining, earlier / (1 - earlier) * noise), remaining
-            )
-            converged = converged | (
-                (slowing | at_noise) & (fmax_new <= floor)
-                & (remaining <= eps / PREDICT_MARGIN * size)
+            converged = converged | self._predicted(
+                state, contraction, known, norm, size, fmax_new <= floor, dtype
             )
         # Rounding has taken over once an update near the root is no smaller than the one
         # before it.
         at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)
         if need is not None:
-            # A lazy branch (each iteration pays for its test only): the Jacobian at the
-            # iteration's new point and its factors.
+            # Each iteration pays for its test only: the refactorisation is a lazy branch.
             need = need & ~(converged | at_floor)
-            point = new
-
-            def refactor():
-                jac = self._jacobian(fn, unravel(point), args, options)
-                if self.matrix == "kinetic":
-                    # the kinetic matrix gives way to the Jacobian itself (Newton's update)
-                    inverse = _factor(jac, dtype, True)[0]
-                    return (factors[0], inverse, jnp.array(True))
-                return _factor(jac, dtype, self.inverse)
-
-            factors = unless_all_skip(need, refactor, factors)
+            factors = self._refactored(need, fn, unravel(new), args, options, factors, dtype)
             refreshes = refreshes + need.astype(jnp.int32)
             fresh = fresh | need
         state = _ChordState(f_new, step_norm, converged, at_floor, stalls, iterations,
                             state.restarted, factors, contraction, refreshes, fresh)
         return unravel(new), state, aux
+
+    def _backtrack(self, residual, flat_y, d, state, a, f_new, aux, floor):
+        """`(a, F, aux)` of the update `a d`: a step with a Jacobian formed where it starts
+        is Newton's, and far from the root it halves `a` as `RoundoffNewton` does until the
+        residual falls."""
+        fmax = jnp.max(jnp.abs(state.f))
+        near = fmax <= floor
+
+        def cond(carry):
+            a, f_try, _, k = carry
+            enough = jnp.max(jnp.abs(f_try)) <= (1 - 1e-4 * a) * fmax
+            return state.fresh & ~near & ~enough & (k < self.max_backtracks)
+
+        def body(carry):
+            a, _, _, k = carry
+            a = a / 2
+            f_try, aux = residual(flat_y + a * d)
+            return a, f_try, aux, k + 1
+
+        a, f_new, aux, _ = jax.lax.while_loop(cond, body, (a, f_new, aux, 0))
+        return a, f_new, aux
+
+    @staticmethod
+    def _predicted(state, contraction, known, norm, size, within_floor, dtype) -> Array:
+        """Whether the contraction of the updates predicts the remaining error far below one
+        rounding unit of the unknowns (`predict`).
+
+        A linear iteration's remaining error is about `θ/(1 − θ)` times its last update (θ
+        the contraction factor). It is a fixed function of the step's start, the same from
+        step to step: stop only once it is far below one rounding unit of the unknowns
+        (`PREDICT_MARGIN`), or it would add up to a drift over a long run. θ is the larger
+        of the last two ratios of updates: from a poor start the update after Newton's first
+        can shrink far more than the iteration's rate."""
+        rate = jnp.maximum(contraction, state.contraction)
+        slowing = known & (rate < 1)
+        remaining = rate / jnp.where(slowing, 1 - rate, 1) * norm
+        eps = float(jnp.finfo(dtype).eps)
+        # An update at the rounding noise has a ratio of noise to signal, not the rate:
+        # there the rate is the ratio before it, and what is left is that rate times
+        # the noise's size (or less).
+        noise = NOISE_UPDATE * eps * size
+        earlier = state.contraction
+        at_noise = (norm <= noise) & (earlier > 0) & (earlier < 1)
+        remaining = jnp.where(
+            at_noise, jnp.minimum(remaining, earlier / (1 - earlier) * noise), remaining
+        )
+        return (slowing | at_noise) & within_floor & (remaining <= eps / PREDICT_MARGIN * size)
+
+    def _refactored(self, need, fn, point, args, options, factors, dtype
+                    ) -> tuple[Array, ...]:
+        """The iteration's factors formed again at `point` where `need` says so (lazy under
+        `vmap`): the Jacobian's, or with `matrix="kinetic"` the Jacobian's inverse beside the
+        kinetic matrix, which then gives way to it (Newton's update)."""
+
+        def refactor():
+            jac = self._jacobian(fn, point, args, options)
+            if self.matrix == "kinetic":
+                inverse = _factor(jac, dtype, True)[0]
+                return (factors[0], inverse, jnp.array(True))
+            return _factor(jac, dtype, self.inverse)
+
+        return unless_all_skip(need, refactor, factors)
 
     def _whole_solve_loop(self, fn, args, options, carry, limit):
         """`RoundoffNewton._whole_solve_loop`; where the updates use only the start's matrix

@@ -57,8 +57,8 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from .lazy import unless_all_skip
-from .linalg import damped_least_squares, solve
+from ..lazy import unless_all_skip
+from ..linalg import damped_least_squares, solve
 from .step_hints import AbstractStepRootFinder, hints_of
 
 __all__ = ["AbstractDampedNewton", "RegularisedNewton", "LevenbergMarquardt", "default_tolerances"]
@@ -236,6 +236,65 @@ class AbstractDampedNewton(AbstractStepRootFinder):
         if hints_of(options).fallback is not None:
             y, state = self._switch_to_fallback(residual, args, options, y, state)
             flat_y = ravel_pytree(y)[0]
+        jac, f, aux, refresh = self._jacobian_here(residual, y, flat_y, args, options, state)
+        reused = jnp.where(refresh, 0, state.reused + 1)
+        d = self.direction(jac, f, state.stalls)
+        ok, a, best_a, best_phi, best_f, fa, phi0 = self._line_search(residual, flat_y, f, jac, d)
+        # No acceptable point: take the best trial seen, and count a stall. With a reused
+        # Jacobian that is not a stall yet: the next iteration retries with a fresh one, and
+        # stays put unless the best trial decreased the residual.
+        a_used = jnp.where(ok, a, best_a)
+        stalls = jnp.where(ok | ~refresh, 0, state.stalls + 1)
+        a_used = jnp.where(ok | refresh | (best_phi < phi0), a_used, 0)
+        f_used = jnp.where(ok, fa, jnp.where(a_used != 0, best_f, f))
+        # A finite residual with a non-finite direction is a broken-down linear solve
+        # (`singular`); a non-finite residual, or one that turns non-finite all along the
+        # direction, is `nonfinite`. Either way the iterate stays at the last finite point,
+        # so the state reports the residual there.
+        f_finite = jnp.all(jnp.isfinite(f))
+        d_finite = jnp.all(jnp.isfinite(d))
+        good = f_finite & d_finite & jnp.isfinite(best_phi)
+        new_flat_y = jnp.where(good, flat_y + a_used * d, flat_y)
+        f_used = jnp.where(good, f_used, f)
+        new_y = unravel(new_flat_y)
+        still = self._still(flat_y, new_flat_y, f, f_used)
+        out = _flat_outputs(options, new_y, dtype)
+        out_change = jnp.max(jnp.abs(out - state.out) / (1 + jnp.abs(out)), initial=0.0)
+        fmax = jnp.max(jnp.abs(f_used))
+        progress = fmax < 0.5 * state.fbest
+        idle = jnp.where(progress, 0, state.idle + 1)
+        result = optx.RESULTS.where(good, state.result, optx.RESULTS.nonfinite)
+        result = optx.RESULTS.where(f_finite & ~d_finite, optx.RESULTS.singular, result)
+        new_state = _DampedNewtonState(
+            f=f_used,
+            out=out,
+            out_change=out_change.astype(dtype),
+            fbest=jnp.where(progress, fmax, state.fbest),
+            idle=idle,
+            result=result,
+            stalls=stalls,
+            jac=jac,
+            # Keep the Jacobian while its full step is accepted and cuts the residual 4-fold,
+            # for at most `reuse_jacobian` iterations in a row, and not at the residual floor,
+            # where only exact iterations can show convergence.
+            reused=reused,
+            exact=refresh,
+            f0=state.f0,
+            still=still,
+            refresh=~(ok & (a == 1) & (fmax < 0.25 * jnp.max(jnp.abs(f))))
+            | (reused >= self.reuse_jacobian)
+            | (fmax <= self.tolerances(dtype)["floor"]
+               * jnp.asarray(hints_of(options).scale, dtype)),
+            restarted=state.restarted,
+            pending=state.pending,
+            from_fallback=state.from_fallback,
+        )
+        return new_y, new_state, aux
+
+    def _jacobian_here(self, residual, y, flat_y, args, options, state):
+        """`(J, F, aux, fresh)` at the iterate: a fresh Jacobian (by `jacobian`'s rule), or
+        with `reuse_jacobian` the state's where it is still due for reuse (`fresh` false)."""
+        dtype = flat_y.dtype
 
         def residual_and_copy(v):
             f, aux = residual(v)
@@ -281,8 +340,13 @@ class AbstractDampedNewton(AbstractStepRootFinder):
         else:
             refresh = jnp.array(True)
             jac, f, aux = fresh()
-        reused = jnp.where(refresh, 0, state.reused + 1)
-        d = self.direction(jac, f, state.stalls)
+        return jac, f, aux, refresh
+
+    def _line_search(self, residual, flat_y, f, jac, d):
+        """Armijo backtracking on `½‖F‖²` along `d` from the full step: whether a trial was
+        acceptable, its step `a`, the best trial's step, `½‖F‖²` and residual, the last
+        trial's residual, and `½‖F‖²` at the start."""
+        dtype = flat_y.dtype
         slope = jnp.dot(f, jac @ d)  # derivative of ½‖F(y + a d)‖² at a = 0
         phi0 = 0.5 * jnp.dot(f, f)
         c1 = jnp.asarray(1e-4, dtype)
@@ -317,65 +381,18 @@ class AbstractDampedNewton(AbstractStepRootFinder):
         inf = jnp.full((), jnp.inf, dtype)
         carry = (jnp.array(0, jnp.int32), one, one, inf, f, f, inf)
         _, a, best_a, best_phi, best_f, fa, phi = jax.lax.while_loop(cond, body, carry)
-        ok = acceptable(a, phi)
-        # No acceptable point: take the best trial seen, and count a stall. With a reused
-        # Jacobian that is not a stall yet: the next iteration retries with a fresh one, and
-        # stays put unless the best trial decreased the residual.
-        a_used = jnp.where(ok, a, best_a)
-        stalls = jnp.where(ok | ~refresh, 0, state.stalls + 1)
-        a_used = jnp.where(ok | refresh | (best_phi < phi0), a_used, 0)
-        f_used = jnp.where(ok, fa, jnp.where(a_used != 0, best_f, f))
-        # A finite residual with a non-finite direction is a broken-down linear solve
-        # (`singular`); a non-finite residual, or one that turns non-finite all along the
-        # direction, is `nonfinite`. Either way the iterate stays at the last finite point,
-        # so the state reports the residual there.
-        f_finite = jnp.all(jnp.isfinite(f))
-        d_finite = jnp.all(jnp.isfinite(d))
-        good = f_finite & d_finite & jnp.isfinite(best_phi)
-        new_flat_y = jnp.where(good, flat_y + a_used * d, flat_y)
-        f_used = jnp.where(good, f_used, f)
-        new_y = unravel(new_flat_y)
-        if self._reference_mode() is False:
-            still = jnp.array(False)  # only the reference's test reads it
-        else:
-            eps = jnp.finfo(dtype).eps
-            still = (jnp.max(jnp.abs(new_flat_y - flat_y), initial=0.0)
-                     <= 2 * eps * jnp.max(jnp.abs(new_flat_y), initial=0.0)) | (
-                jnp.max(jnp.abs(f_used - f), initial=0.0)
-                <= 2 * eps * jnp.max(jnp.abs(f_used), initial=0.0))
+        return acceptable(a, phi), a, best_a, best_phi, best_f, fa, phi0
 
-        out = _flat_outputs(options, new_y, dtype)
-        out_change = jnp.max(jnp.abs(out - state.out) / (1 + jnp.abs(out)), initial=0.0)
-        fmax = jnp.max(jnp.abs(f_used))
-        progress = fmax < 0.5 * state.fbest
-        idle = jnp.where(progress, 0, state.idle + 1)
-        result = optx.RESULTS.where(good, state.result, optx.RESULTS.nonfinite)
-        result = optx.RESULTS.where(f_finite & ~d_finite, optx.RESULTS.singular, result)
-        new_state = _DampedNewtonState(
-            f=f_used,
-            out=out,
-            out_change=out_change.astype(dtype),
-            fbest=jnp.where(progress, fmax, state.fbest),
-            idle=idle,
-            result=result,
-            stalls=stalls,
-            jac=jac,
-            # Keep the Jacobian while its full step is accepted and cuts the residual 4-fold,
-            # for at most `reuse_jacobian` iterations in a row, and not at the residual floor,
-            # where only exact iterations can show convergence.
-            reused=reused,
-            exact=refresh,
-            f0=state.f0,
-            still=still,
-            refresh=~(ok & (a == 1) & (fmax < 0.25 * jnp.max(jnp.abs(f))))
-            | (reused >= self.reuse_jacobian)
-            | (fmax <= self.tolerances(dtype)["floor"]
-               * jnp.asarray(hints_of(options).scale, dtype)),
-            restarted=state.restarted,
-            pending=state.pending,
-            from_fallback=state.from_fallback,
-        )
-        return new_y, new_state, aux
+    def _still(self, flat_y, new_flat_y, f, f_used) -> Array:
+        """Whether the iteration changed `x` or `F` by at most `2 eps` (relative): what the
+        reference's test reads (`convergence="reference"`), else always false."""
+        if self._reference_mode() is False:
+            return jnp.array(False)
+        eps = jnp.finfo(flat_y.dtype).eps
+        return (jnp.max(jnp.abs(new_flat_y - flat_y), initial=0.0)
+                <= 2 * eps * jnp.max(jnp.abs(new_flat_y), initial=0.0)) | (
+            jnp.max(jnp.abs(f_used - f), initial=0.0)
+            <= 2 * eps * jnp.max(jnp.abs(f_used), initial=0.0))
 
     def _restartable(self, args, options, state, result=None) -> Array:
         """Whether the solve has failed and may restart from the caller's fallback (`result`:
