@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test test-fast test-long lint bench bench-quick bench-full docs clean
+.PHONY: setup demo test test-slow test-fast test-long lint bench bench-quick bench-full docs clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -20,10 +20,18 @@ demo: $(STAMP)
 # pytest exits 5 when it collects nothing; make treats that as a failure.
 # Test files are spread over PYTEST_WORKERS processes (pytest-xdist), one file per worker at
 # a time so that a module's compiled solves are reused within it.
+# `make test` runs every feature's tests but leaves out those marked `slow`: the further
+# cases of a claim that a test in `make test` already makes (other problems, dtypes,
+# activations, vmap of a solve whose single run is tested), each marked where it is with the
+# test that keeps it covered. `make test-slow` runs them; CI (.ci/run) runs both.
 PYTEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile -m "not slow and not long"
 
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile -m "slow and not long"
+
+# `make test` in one process.
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow and not long"
 

@@ -481,6 +481,7 @@ def test_benchmark_scripts_use_no_private_names_of_the_package_or_each_other():
     assert not found, f"private names used by benchmark scripts: {found}"
 
 
+@pytest.mark.slow  # a study script's report (benchmarks/), not the package
 def test_root_existence_script_reports_each_seed(capsys):
     """benchmarks.root_existence: one row per seed and step length; a short oscillator
     step converges and is accurate, a failed one reports the stalled iterate's error."""

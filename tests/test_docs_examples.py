@@ -64,11 +64,12 @@ def python_blocks(page: Path) -> list[str]:
 PAGES = sorted(p for p in DOCS.rglob("*.md") if fenced_python(p))
 
 # Each page compiles its own solves (together about 4 minutes of one core of the 2-core CI
-# machine). The pages below, about 85 s of it, are marked `long`: `make test` leaves them out
+# machine). The pages below, about 2 minutes of it, are marked `long`: `make test` leaves them out
 # and `make docs` runs them after building the site, so CI runs every block once.
 LONG_PAGES = {
     "how-to/gradients.md": "reverse-mode gradient of a solve: the costliest compile",
     "how-to/ensembles.md": "three vmapped programs (ensemble, sharded ensemble, manual sharding)",
+    "how-to/choosing.md": "a solve of each of the solvers it compares",
 }
 
 

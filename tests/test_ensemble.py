@@ -34,7 +34,10 @@ def initial_conditions(n):
     return q, jnp.zeros_like(q)
 
 
-@pytest.mark.parametrize("batch_size", [None, 1, 2])
+@pytest.mark.parametrize("batch_size", [
+    None, 1,
+    pytest.param(2, marks=pytest.mark.slow),  # the compiled loop over chunks: batch_size=1
+])
 def test_ensemble_matches_single_solves(batch_size):
     """Every way of sharing the device (full vmap, a compiled loop over members or over
     chunks of 2, which leaves a remainder of 1) gives each member its single solve."""

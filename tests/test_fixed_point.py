@@ -61,10 +61,12 @@ def step_system(solver, problem, h):
 
 
 @pytest.mark.parametrize("name, kind", [
-    *((name, "cgvi") for name in SHORT),
-    ("double_pendulum", "network"),
-    *(pytest.param(name, "network", marks=pytest.mark.slow)
-      for name in ("harmonic_oscillator", "kepler")),
+    # one case of each family in `make test`, the rest in `make test-slow`
+    ("kepler", "cgvi"),
+    ("harmonic_oscillator", "network"),
+    *(pytest.param(name, kind, marks=pytest.mark.slow) for name, kind in [
+        ("harmonic_oscillator", "cgvi"), ("double_pendulum", "cgvi"),
+        ("double_pendulum", "network"), ("kepler", "network")]),
 ])
 def test_same_root_as_newton_on_a_step(name, kind):
     # Newton from uniform motion, the chord from near its root (as from the previous curve
@@ -110,6 +112,8 @@ def test_same_trajectory_as_newton_at_round_off(kind):
     assert int(state.restarts) == 0
 
 
+# (a chord solve's counts: test_network_oscillator_in_one_update; vmap: test_projection.py)
+@pytest.mark.slow
 def test_double_pendulum_trajectory_counts_and_vmap():
     # CGVI(6) with the chord run to round-off: accurate, iteration counts in the solver state
     # as for Newton, no restart; under vmap the same as a loop of single solves.
@@ -285,7 +289,8 @@ def test_is_accepted_where_newton_is_and_checks_its_settings():
 
 
 # -- round-off by prediction ---------------------------------------------------------------------
-@pytest.mark.parametrize("name", list(SHORT))
+@pytest.mark.parametrize("name", [
+    "harmonic_oscillator", *(pytest.param(n, marks=pytest.mark.slow) for n in list(SHORT)[1:])])
 def test_predict_reaches_round_off_in_fewer_updates(name):
     # From a start 1e-3 off the root (as in the test against Newton above): the prediction
     # ends where the updates would stop shrinking, to rounding, with fewer of them.
@@ -314,6 +319,7 @@ def test_predict_reaches_round_off_in_fewer_updates(name):
     assert int(n_pred) < int(n_full)
 
 
+@pytest.mark.slow  # the prediction's claim, on a step: test_predict_reaches_round_off_...
 def test_predict_halves_the_updates_of_a_run_to_round_off():
     # Kepler e = 0.5, 100 steps per orbit: chord to round-off in 2 updates a step (4.5
     # without the prediction, on the benchmarks page), ending where it does without it.
@@ -345,8 +351,8 @@ def test_kinetic_inverse_is_the_jacobian_inverse_without_forces(kind, uniform):
     y0 = (jnp.array([0.3, -0.2]), jnp.array([0.5, 0.1]))
     solver = family(kind)(FixedPointIteration(matrix="kinetic"))
     form = solver.formulation
-    ctx = solver.step_context(term, 0.0, 0.25, y0, None)
     dim = 2
+    ctx = solver.step_context(term, 0.0, 0.25, y0, None)
     if isinstance(solver.basis, dvi.ShallowNetBasis):
         hidden = form.hidden.parameters(solver.basis, dim, jnp.float64)
     else:
@@ -357,16 +363,21 @@ def test_kinetic_inverse_is_the_jacobian_inverse_without_forces(kind, uniform):
     rng = np.random.default_rng(0)
     z = (jnp.asarray(rng.normal(size=(k, dim))) * span.live, jnp.asarray(rng.normal(size=dim)))
     f = (jnp.asarray(rng.normal(size=(k, dim))) * span.live, jnp.asarray(rng.normal(size=dim)))
-    inverse = form.kinetic_inverse(z, (ctx, span), uniform=uniform)
-    jac = form.reduced_jacobian(z, (ctx, span))
-    flat_f, unravel = jax.flatten_util.ravel_pytree(f)
-    expected = jnp.linalg.solve(jac, flat_f)
-    got = jax.flatten_util.ravel_pytree(inverse(f))[0]
+
+    @jax.jit  # one program, not one per JAX operation; the span a constant, as in a step
+    def both(z, f):
+        inverse = form.kinetic_inverse(z, (ctx, span), uniform=uniform)
+        jac = form.reduced_jacobian(z, (ctx, span))
+        flat_f, _ = jax.flatten_util.ravel_pytree(f)
+        return jax.flatten_util.ravel_pytree(inverse(f))[0], jnp.linalg.solve(jac, flat_f)
+
+    got, expected = both(z, f)
     np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=0,
                                atol=1e-11 * float(jnp.max(jnp.abs(expected))))
 
 
-@pytest.mark.parametrize("name", list(SHORT))
+@pytest.mark.parametrize("name", [
+    "harmonic_oscillator", *(pytest.param(n, marks=pytest.mark.slow) for n in list(SHORT)[1:])])
 def test_kinetic_iteration_reaches_newtons_trajectory(name):
     make, kw, h, n = SHORT[name]
     problem = make(**kw)
@@ -397,6 +408,7 @@ def test_kinetic_iteration_on_the_outer_solar_system():
     assert np.max(np.abs(a - b)) <= 1e-13 * np.max(np.abs(a))
 
 
+@pytest.mark.slow  # the kinetic solve: test_kinetic_iteration_reaches_newtons_trajectory
 def test_kinetic_iteration_with_a_network_and_under_vmap():
     problem = problems.double_pendulum()
     solver = network(FixedPointIteration(ftol=0.0, matrix="kinetic"))
@@ -420,6 +432,9 @@ def test_kinetic_iteration_with_a_network_and_under_vmap():
                                rtol=0, atol=1e-14)
 
 
+# (a loud failure: test_kinetic_iteration_refuses_a_degenerate_lagrangian_loudly; the refresh:
+# test_refresh_speeds_up_a_slow_chord_on_a_step)
+@pytest.mark.slow
 def test_kinetic_iteration_fails_loudly_or_refreshes():
     # The stiff spring: the kinetic matrix cannot see the force's stiffness. Without a
     # refresh the step fails; with one, the iteration turns into Newton's and solves it.
@@ -451,7 +466,7 @@ def test_kinetic_matrix_needs_the_projected_step():
         optx.root_find(_system, rf, jnp.array([1.1, 1.9]), max_steps=5, throw=False)
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
+@pytest.mark.parametrize("dtype", [pytest.param(jnp.float32, marks=pytest.mark.slow), jnp.float16])
 def test_kinetic_iteration_stays_in_its_dtype(dtype):
     problem = problems.harmonic_oscillator(dtype=dtype)
     solver = dvi.CGVI(4, root_finder=FixedPointIteration(matrix="kinetic"))
@@ -518,7 +533,7 @@ def test_the_hint_inverse_starts_the_iteration(given, newton):
         assert bool(jnp.all(jnp.isfinite(sol.state.factors[0])))
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
+@pytest.mark.parametrize("dtype", [pytest.param(jnp.float32, marks=pytest.mark.slow), jnp.float16])
 def test_default_cgvi_on_two_coordinates_stays_in_its_dtype(dtype):
     """The default step's start on two coordinates (the Jacobian as one product, the inverse
     by elimination, which runs in float32 below 32 bits) keeps the state in its dtype and

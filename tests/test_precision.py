@@ -79,6 +79,7 @@ def test_compensation_keeps_small_steps_at_round_off():
     assert bool(jnp.any(eq != 0) | jnp.any(ep != 0))
 
 
+@pytest.mark.slow  # compensation: the float64 test above; here its float32 run (20 000 steps)
 @pytest.mark.parametrize("dtype, bound", [(jnp.float32, 2e-6)])
 def test_float32_stays_float32_with_compensation(dtype, bound):
     problem = problems.harmonic_oscillator()

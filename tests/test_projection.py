@@ -29,7 +29,11 @@ def residual_scale(y0):
     return 1 + max(float(jnp.max(jnp.abs(q))), float(jnp.max(jnp.abs(p))))
 
 
-@pytest.mark.parametrize("activation", [dvi.tanh, dvi.gelu, dvi.sigmoid])
+@pytest.mark.parametrize("activation", [
+    dvi.tanh,
+    # (the other activations' projected step: test_activation_recognition.py's energy test)
+    *(pytest.param(a, marks=pytest.mark.slow) for a in (dvi.gelu, dvi.sigmoid)),
+])
 def test_oscillator_to_round_off_in_one_iteration(activation):
     # A quadratic Lagrangian makes the projected equations linear: one Newton update solves
     # them, and the residual left is rounding (issue 27: max error <= 2e-14, final <= 1e-14);
@@ -93,6 +97,7 @@ def test_converged_parameters_are_the_curve():
     np.testing.assert_allclose(q_end, sol.ys[0][-1], rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow  # dense output of the default (projected) step: test_solver.py
 def test_dense_output_inside_a_step():
     problem = problems.harmonic_oscillator()
     solver = projected(dvi.tanh, 12, 10)
@@ -119,16 +124,22 @@ def test_closed_form_jacobian_matches_autodiff():
     ctx, theta = _context(problem, solver)
     assert isinstance(ctx, StepContext)
     form = solver.formulation
-    span = form.span(theta, ctx)
-    start = form.reduce(lambda tau: solver.basis.evaluate(theta, tau), span, ctx)
-    z = (start, problem.y0[1] + 0.1)
-    flat, unravel = jax.flatten_util.ravel_pytree(z)
 
-    def residual(v):
-        return jax.flatten_util.ravel_pytree(form.reduced_residual(unravel(v), (ctx, span)))[0]
+    @jax.jit  # one program, not one per JAX operation
+    def both(theta):
+        span = form.span(theta, ctx)
+        start = form.reduce(lambda tau: solver.basis.evaluate(theta, tau), span, ctx)
+        z = (start, problem.y0[1] + 0.1)
+        flat, unravel = jax.flatten_util.ravel_pytree(z)
 
-    expected = jax.jacfwd(residual)(flat)
-    np.testing.assert_allclose(form.reduced_jacobian(z, (ctx, span)), expected, atol=1e-12)
+        def residual(v):
+            return jax.flatten_util.ravel_pytree(
+                form.reduced_residual(unravel(v), (ctx, span)))[0]
+
+        return form.reduced_jacobian(z, (ctx, span)), jax.jacfwd(residual)(flat)
+
+    closed_form, expected = both(theta)
+    np.testing.assert_allclose(closed_form, expected, atol=1e-12)
 
 
 def test_span_is_orthonormal_in_the_quadrature_norm():
@@ -215,6 +226,7 @@ def test_degenerate_pendulum():
     assert max_relative_error(problem, sol) <= 1e-9
 
 
+@pytest.mark.slow  # vmap against the loop: the oscillator above
 def test_vmap_matches_loop_on_the_double_pendulum():
     problem = problems.double_pendulum(t1=0.5, dt=0.1)
     solver = projected(dvi.tanh, 10, 16)
@@ -231,11 +243,7 @@ def test_vmap_matches_loop_on_the_double_pendulum():
     np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-14)
 
 
-def test_restart_from_the_trajectory_seed():
-    # The double pendulum at h = 1: on some steps the start from the previous curve does not
-    # converge within the first try, and the restart from the trajectory seed does.
-    problem = problems.double_pendulum()
-
+def _restart_run(problem):
     def run(y, max_steps=256):
         solver = dvi.NetworkVI(
             dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(16),
@@ -247,9 +255,22 @@ def test_restart_from_the_trajectory_seed():
         )
         return sol.ys[0][-1], sol.result, sol.solver_state.restarts
 
-    q, result, restarts = eqx.filter_jit(run)(problem.y0)
+    return run
+
+
+def test_restart_from_the_trajectory_seed():
+    # The double pendulum at h = 1: on some steps the start from the previous curve does not
+    # converge within the first try, and the restart from the trajectory seed does.
+    problem = problems.double_pendulum()
+    q, result, restarts = eqx.filter_jit(_restart_run(problem))(problem.y0)
     assert result == diffrax.RESULTS.successful
     assert int(restarts) >= 1 and np.all(np.isfinite(np.asarray(q)))
+
+
+@pytest.mark.slow  # the restart itself: the test above; here under vmap and without a second try
+def test_restart_under_vmap_and_without_a_second_try():
+    problem = problems.double_pendulum()
+    run = _restart_run(problem)
     # a member that restarts and one that does not, in one batch, as in a loop
     q0, p0 = problem.y0
     scales = jnp.array([0.1, 1.0])
@@ -265,6 +286,7 @@ def test_restart_from_the_trajectory_seed():
     assert result != diffrax.RESULTS.successful and int(restarts) == 0
 
 
+@pytest.mark.slow  # the projected step's gradient: test_solver_interop.py's finite-difference test
 def test_gradient_through_projected_steps():
     # d q(T) / d q0 of the oscillator is cos(T); implicit differentiation of each projected
     # step's square system gives it.
@@ -612,8 +634,15 @@ def test_end_on_constraint_is_the_correction_and_the_violation_there(correct):
         assert float(violation) == pytest.approx(0.02 if correct else 0.21, abs=1e-15)
 
 
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32, jnp.float16])
-@pytest.mark.parametrize("shape", [(10, 8, 1), (18, 10, 2), (6, 12, 3)])
+# every shape in float16 and float64, one in float32 (each case compiles its own programs)
+@pytest.mark.parametrize("shape, dtype", [
+    pytest.param(shape, dtype, marks=[pytest.mark.slow] if slow else [],
+                 id=f"{'x'.join(map(str, shape))}-{jnp.dtype(dtype).name}")
+    for shape, slow_dtypes in [((10, 8, 1), ()), ((18, 10, 2), (jnp.float32,)),
+                               ((6, 12, 3), (jnp.float64, jnp.float32))]
+    for dtype in (jnp.float64, jnp.float32, jnp.float16)
+    for slow in [dtype in slow_dtypes]
+])
 def test_a_known_span_is_the_span_of_jax_operation_by_operation(dtype, shape):
     """A span known when the step is traced is computed then, in NumPy but for its
     reductions: bit for bit the span that JAX's operations give one by one (as they did

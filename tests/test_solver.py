@@ -318,6 +318,7 @@ def test_structured_jacobian_solves_like_the_dense_one(ho_tanh_all):
         shallow(dvi.tanh, 10, 8, root_finder=rf, formulation=dvi.InterpolatingEndpoints())
 
 
+@pytest.mark.slow  # a distribution over 24 starts; the structured Jacobian: the test above
 def test_closed_form_jacobian_matches_the_dense_one_in_distribution():
     """Over random oscillator starts the closed-form block Jacobian fails no more often and is
     no less accurate than `jax.jacfwd` (measured over 200 starts, 10 steps of 0.1: 7 and 10
@@ -427,6 +428,8 @@ def test_refit_tolerance_zero_falls_back_to_the_oga():
     assert max_relative_error(problem, sol) <= 1e-11
 
 
+# (an all-parameter option; refits: test_refit_tolerance_zero_falls_back_to_the_oga)
+@pytest.mark.slow
 def test_refit_residual_refits_only_from_roots_accepted_below_it(ho_tanh_all):
     """`refit_residual` bounds the previous step's accepted residual a refit may start from:
     0 seeds every step by a fresh fit (the default seed's result); a limit between the

@@ -422,6 +422,7 @@ def test_non_separable_lagrangians_refused():
     )
 
 
+@pytest.mark.slow  # the sympy term equals the hand-written one: test_sympy_term_matches_jnp_term
 def test_sympy_double_pendulum_trajectory_matches_hand_written():
     _, fn, _, args = SYSTEMS["double_pendulum"]
     y0 = (jnp.array([np.pi / 4, np.pi / 2]), jnp.array([3.3321622036187746, 7.0685834705770345]))
