@@ -234,7 +234,7 @@ def test_cli_resume_runs_only_the_missing_cases(tmp_path):
     """`--resume` keeps the logged cases (their measured wall times come back unchanged) and
     runs the others; the CSV is the whole table in case order."""
     from diffrax_vi.bench.__main__ import main as cli_main
-    from diffrax_vi.bench.harness import read_rows
+    from diffrax_vi.bench.rows import read_rows
 
     out = str(tmp_path / "out")
     argv = ["work-precision", "--problems", "harmonic_oscillator", "pendulum", "--solvers",

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from diffrax_vi import problems
-from diffrax_vi.bench import Heyoka, peers, work_precision
+from diffrax_vi.bench import Heyoka, hamilton, peers, work_precision
 
 
 def _kepler(orbits=1.0):
@@ -67,9 +67,9 @@ def test_hamilton_equations_from_the_traced_hamiltonian_match_the_term(make):
     """The Hamiltonian's jaxpr evaluated on sympy symbols, differentiated: the term's own
     vector field at y0 (slices, sums, concatenations and nested jits translated)."""
     problem = make()
-    t, qs, ps, H, rhs = peers.hamilton_equations(problem)
+    t, qs, ps, H, rhs = hamilton.hamilton_equations(problem)
     assert len(rhs) == 2 * problem.dim
-    peers.check_equations(problem, t, qs, ps, rhs)  # raises where they differ
+    hamilton.check_equations(problem, t, qs, ps, rhs)  # raises where they differ
     if problem.name == "kepler":
         import sympy as sp
 
@@ -80,9 +80,9 @@ def test_a_degenerate_problem_is_refused_by_name():
     """The reference's pendulum is linear in the velocities: no Hamilton equations in the
     term's (q, p); the check says so instead of integrating something else."""
     problem = problems.pendulum(dtype=jnp.float64)
-    t, qs, ps, _, rhs = peers.hamilton_equations(problem)
+    t, qs, ps, _, rhs = hamilton.hamilton_equations(problem)
     with pytest.raises(ValueError, match="pendulum: Hamilton's equations"):
-        peers.check_equations(problem, t, qs, ps, rhs)
+        hamilton.check_equations(problem, t, qs, ps, rhs)
 
 
 # -- with heyoka ---------------------------------------------------------------------------------

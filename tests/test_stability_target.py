@@ -11,14 +11,11 @@ import numpy as np
 import pytest
 
 from diffrax_vi.bench import read_rows, report, write_rows
-from diffrax_vi.bench.stability import (
-    SWEEP_COLUMNS,
+from diffrax_vi.bench.stability import SWEEP_COLUMNS, StabilityCase, quick_grid, run_case
+from diffrax_vi.bench.stability_results import (
     TARGET_RATES,
-    StabilityCase,
     accuracy_tolerance,
     outcome,
-    quick_grid,
-    run_case,
     stability_target,
 )
 

@@ -85,7 +85,7 @@ def _sweep(args, study: str, sweep, cases: list, progress, columns=None) -> list
     """Run `cases` of `sweep` on the run's executor, logging each case to `<study>.jsonl`
     and streaming its rows to the study's CSV; then rewrite the CSV in case order."""
     from .executor import SweepIncomplete, run_sweep
-    from .harness import write_rows
+    from .rows import write_rows
 
     csv_path = os.path.join(args.out, CSV[study])
     log = os.path.splitext(csv_path)[0] + ".jsonl"
@@ -209,7 +209,7 @@ def write_report(out: str, command: str = "", elapsed: float | None = None) -> s
     """Assemble `report.md` and the PNG figures from the CSVs found in `out` (`elapsed`: the
     run's wall time in seconds, stated under the command)."""
     from . import report
-    from .harness import read_rows
+    from .rows import read_rows
 
     parts = ["# diffrax_vi benchmark report", ""]
     if command:

@@ -1,28 +1,19 @@
 """Work-precision and long-time energy measurements of mechanical solvers on a `Problem`.
 
-A benchmark entry says how to run one solver:
-
-- `Fixed(name, solver)`: a diffrax solver (`NetworkVI`, `CGVI`, `SemiImplicitEuler`, ...) on
-  constant steps; its sweep parameter is the number of steps over the problem's span.
-- `Adaptive(name, solver)`: a diffrax solver with `PIDController(rtol, atol = atol_ratio·rtol)`;
-  the sweep parameter is `rtol`.
-- `SciPy(name, method)`: `scipy.integrate.solve_ivp` (e.g. `"DOP853"`); sweep parameter `rtol`.
-- `Heyoka(name)`: heyoka's Taylor integrator (the optional `peers` extra, see `bench.peers`);
-  sweep parameter heyoka's `tol` (relative and absolute), under the name `rtol`.
-
-All runs of one entry on one problem share one compilation: the end time, the step size and the
-tolerances are traced arguments of a single `eqx.filter_jit`-ed `diffeqsolve`. Every run is
-isolated: an exception becomes a row with status `error:<ExceptionName>`.
+Each solver comes as an entry (`diffrax_vi.bench.entries`: `Fixed`, `Adaptive`, `SciPy`,
+`Heyoka`) that says how to run it and what its sweep parameter is. All runs of one entry on
+one problem share one compilation: the end time, the step size and the tolerances are traced
+arguments of a single `eqx.filter_jit`-ed `diffeqsolve`. Every run is isolated: an exception
+becomes a row with status `error:<ExceptionName>`. Rows go to CSV by
+`diffrax_vi.bench.rows`.
 """
 
 from __future__ import annotations
 
-import csv
-import dataclasses
 import math
 import statistics
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import diffrax
@@ -33,112 +24,20 @@ import numpy as np
 
 from ..problems import Problem
 from ..step_size import RetryFailedSteps
+from .entries import Adaptive, Entry, Fixed, Heyoka, NotSeparable, SciPy
+from .rows import write_rows
 from .status import classify
 
 __all__ = [
-    "Fixed",
-    "Adaptive",
-    "SciPy",
-    "Heyoka",
-    "Entry",
-    "work_precision",
-    "long_time_energy",
+    "energy_errors",
     "growth_exponent",
+    "iteration_summary",
+    "long_time_energy",
+    "numpy_rhs",
     "relative_error",
-    "write_rows",
-    "read_rows",
+    "timed",
+    "work_precision",
 ]
-
-
-@dataclasses.dataclass(frozen=True)
-class Fixed:
-    """A diffrax solver on constant steps (sweep parameter: steps over the span).
-
-    **Arguments:**
-
-    - `name`: label in the tables and plots.
-    - `solver`: the diffrax solver, e.g. `NetworkVI(...)`, `CGVI(7)`, `SemiImplicitEuler()`.
-    - `separable`: integrate the pair `term.separable_terms(y0)` (for `SemiImplicitEuler`);
-      a problem that is not separable is skipped with status `error:NotSeparable`.
-    - `family`: `"ours"` for the NetworkVI variants, `"peer"` for the others (the reports
-      compare the best of each).
-    - `retry`: step with `RetryFailedSteps()` instead of `ConstantStepSize()`, so that a
-      failed step is taken again in pieces instead of ending the run (`steps` then counts
-      the pieces, `rejected` the failed trials).
-    """
-
-    name: str
-    solver: diffrax.AbstractSolver
-    separable: bool = False
-    family: str = "peer"
-    retry: bool = False
-    kind = "fixed"
-    parameter = "steps"
-
-    def step_budget(self, steps: int) -> int:
-        """`max_steps` for a run of `steps` grid steps: room for retries where `retry`."""
-        return retry_step_budget(steps) if self.retry else steps
-
-
-def retry_step_budget(steps: int) -> int:
-    """`max_steps` for `steps` grid steps under `RetryFailedSteps`: every failed trial and
-    every piece of a retried interval is a step of its own."""
-    return 2 * steps + 100
-
-
-@dataclasses.dataclass(frozen=True)
-class Adaptive:
-    """A diffrax solver with `PIDController(rtol, atol=atol_ratio * rtol)` (sweep: `rtol`)."""
-
-    name: str
-    solver: diffrax.AbstractSolver
-    atol_ratio: float = 1e-2
-    family: str = "peer"
-    kind = "adaptive"
-    parameter = "rtol"
-
-
-@dataclasses.dataclass(frozen=True)
-class SciPy:
-    """`scipy.integrate.solve_ivp(method=...)` with `atol = atol_ratio * rtol` (sweep: `rtol`).
-
-    The right-hand side is the problem's NumPy vector field when it carries one (the problems
-    with a stored or DOP853 reference), else the term's Hamilton equations jitted by JAX and
-    called once per evaluation.
-    """
-
-    name: str = "scipy DOP853"
-    method: str = "DOP853"
-    atol_ratio: float = 1e-2
-    family: str = "peer"
-    kind = "scipy"
-    parameter = "rtol"
-
-
-@dataclasses.dataclass(frozen=True)
-class Heyoka:
-    """heyoka's adaptive Taylor integrator (sweep: its `tol`, passed as the `rtols`).
-
-    Optional: it needs heyoka (`pip install "diffrax_vi[peers]"`); a run without it is a row
-    with status `error:ImportError`. Hamilton's equations come from the problem's Hamiltonian
-    (`bench.peers.heyoka_system`); one integrator is built per (problem, tol), its build
-    (LLVM compilation, without heyoka's caches) in `compile_s`. The energy error is read at
-    the step ends of one more, untimed, run.
-    """
-
-    name: str = "heyoka"
-    compact_mode: bool = False
-    high_accuracy: bool = False
-    family: str = "peer"
-    kind = "heyoka"
-    parameter = "rtol"
-
-
-Entry = Fixed | Adaptive | SciPy | Heyoka
-
-
-class NotSeparable(ValueError):
-    """The problem's Lagrangian is not `T(v) − V(q)`, so a split solver cannot run it."""
 
 
 # -- measurements -----------------------------------------------------------------------------
@@ -428,50 +327,12 @@ def work_precision(
     rows: list[dict[str, Any]] = []
     for entry in solvers:
         sweep = _values_for(entry, steps if isinstance(entry, Fixed) else rtols) or ()
-        runner = None
+        point = _WorkPrecisionPoint(problem, entry, sweep, energy, q_ref, saveat, repeats,
+                                    budget_s, adaptive_max_steps)
         for value in sweep:
             if progress is not None:
                 progress.set_postfix_str(f"{problem.name}: {entry.name} {value:g}")
-            row: dict[str, Any] = dict(
-                problem=problem.name, solver=entry.name, family=entry.family,
-                parameter=entry.parameter, value=value,
-            )
-            try:
-                if isinstance(entry, SciPy):
-                    res, wall, n = scipy_run(problem, entry, t1, value, repeats, budget_s)
-                    d = problem.dim
-                    ts, q, p = res.t, res.y[:d].T, res.y[d:].T
-                    row.update(status=classify(res), steps=len(res.t) - 1, rejected=None,
-                               wall_s=wall, compile_s=0.0, repeats=n, nfev=res.nfev)
-                elif isinstance(entry, Heyoka):
-                    from .peers import heyoka_run
-
-                    ts, q, p, fields = heyoka_run(problem, entry, t1, value, repeats, budget_s)
-                    row.update(fields)
-                else:
-                    max_steps = (
-                        entry.step_budget(int(max(sweep))) if isinstance(entry, Fixed)
-                        else adaptive_max_steps
-                    )
-                    if runner is None:
-                        runner = _DiffraxRunner(problem, entry, max_steps, saveat)
-                    sol, wall, compile_s, n = _repeat(
-                        runner.solve, runner.arguments(t1, value), repeats, budget_s
-                    )
-                    row.update(diffrax_metrics(problem, entry, sol))
-                    row.update(wall_s=wall, compile_s=compile_s, repeats=n)
-                    ts, q, p = _trajectory(sol)
-                row["t_end"] = float(ts[-1])
-                reached = math.isclose(float(ts[-1]), t1, rel_tol=1e-9, abs_tol=1e-12)
-                if row["status"] == "ok" and reached:
-                    row["error"] = relative_error(q[-1], q_ref)
-                    row["energy_error"] = float(np.max(energy_errors(problem, energy, ts, q,
-                                                                      p)))
-                elif row["status"] == "ok":
-                    row["status"] = "error:EndNotReached"
-            except Exception as e:  # one failing run never stops the sweep
-                row["status"] = classify(e)
-                row["message"] = str(e).splitlines()[0][:200] if str(e) else ""
+            row = point.measure(value)
             rows.append(row)
             if csv_path is not None:
                 write_rows([row], csv_path, append=True)
@@ -482,6 +343,72 @@ def work_precision(
             if isinstance(row.get("status"), str) and row["status"].startswith("error:Not"):
                 break  # e.g. not separable: every value would fail the same way
     return rows
+
+
+class _WorkPrecisionPoint:
+    """The rows of `work_precision` for one entry on one problem, a sweep value at a time;
+    the entry's diffrax runs share one compiled solve, built on the first of them."""
+
+    def __init__(self, problem: Problem, entry: Entry, sweep, energy, q_ref, saveat,
+                 repeats: int, budget_s: float, adaptive_max_steps: int):
+        self.problem, self.entry, self.sweep = problem, entry, sweep
+        self.energy, self.q_ref, self.saveat = energy, q_ref, saveat
+        self.repeats, self.budget_s = repeats, budget_s
+        self.adaptive_max_steps = adaptive_max_steps
+        self.runner: _DiffraxRunner | None = None
+
+    def measure(self, value) -> dict[str, Any]:
+        """The row of the sweep value `value` (a failing run is a row too)."""
+        problem, entry, t1 = self.problem, self.entry, self.problem.t1
+        row: dict[str, Any] = dict(
+            problem=problem.name, solver=entry.name, family=entry.family,
+            parameter=entry.parameter, value=value,
+        )
+        try:
+            ts, q, p = self._run(value, row)
+            row["t_end"] = float(ts[-1])
+            reached = math.isclose(float(ts[-1]), t1, rel_tol=1e-9, abs_tol=1e-12)
+            if row["status"] == "ok" and reached:
+                row["error"] = relative_error(q[-1], self.q_ref)
+                row["energy_error"] = float(np.max(energy_errors(problem, self.energy, ts, q,
+                                                                  p)))
+            elif row["status"] == "ok":
+                row["status"] = "error:EndNotReached"
+        except Exception as e:  # one failing run never stops the sweep
+            row["status"] = classify(e)
+            row["message"] = str(e).splitlines()[0][:200] if str(e) else ""
+        return row
+
+    def _run(self, value, row: dict[str, Any]):
+        """Run the entry at `value`, add its status, cost and counters to `row`, and return
+        the trajectory `(ts, q, p)`."""
+        problem, entry, t1 = self.problem, self.entry, self.problem.t1
+        repeats, budget_s = self.repeats, self.budget_s
+        if isinstance(entry, SciPy):
+            res, wall, n = scipy_run(problem, entry, t1, value, repeats, budget_s)
+            d = problem.dim
+            row.update(status=classify(res), steps=len(res.t) - 1, rejected=None,
+                       wall_s=wall, compile_s=0.0, repeats=n, nfev=res.nfev)
+            return res.t, res.y[:d].T, res.y[d:].T
+        if isinstance(entry, Heyoka):
+            from .peers import heyoka_run
+
+            ts, q, p, fields = heyoka_run(problem, entry, t1, value, repeats, budget_s)
+            row.update(fields)
+            return ts, q, p
+        if self.runner is None:
+            max_steps = (
+                entry.step_budget(int(max(self.sweep))) if isinstance(entry, Fixed)
+                else self.adaptive_max_steps
+            )
+            self.runner = _DiffraxRunner(problem, entry, max_steps, self.saveat)
+        runner = self.runner
+        sol, wall, compile_s, n = _repeat(
+            runner.solve, runner.arguments(t1, value), repeats, budget_s
+        )
+        row.update(diffrax_metrics(problem, entry, sol))
+        row.update(wall_s=wall, compile_s=compile_s, repeats=n)
+        return _trajectory(sol)
 
 
 # -- long-time energy --------------------------------------------------------------------------
@@ -565,52 +492,3 @@ def long_time_energy(
         if progress is not None:
             progress.update(1)
     return rows
-
-
-# -- CSV ---------------------------------------------------------------------------------------
-COLUMNS = (
-    "problem", "solver", "family", "parameter", "value", "status", "steps", "rejected",
-    "t_end", "error", "energy_error", "wall_s", "compile_s", "repeats", "iterations",
-    "max_step_iterations", "nfev", "horizon", "t", "message",
-)
-
-
-def write_rows(rows: Iterable[Mapping[str, Any]], path, *, append: bool = False,
-               columns: Sequence[str] | None = None) -> None:
-    """Write rows to a CSV (header written when the file is new or not appending)."""
-    import os
-
-    rows = list(rows)
-    if columns is None:
-        columns = list(COLUMNS)
-        for r in rows:
-            columns += [k for k in r if k not in columns]
-    new = not append or not os.path.exists(path) or os.path.getsize(path) == 0
-    if not new:  # keep the existing header's order
-        with open(path, newline="") as f:
-            header = next(csv.reader(f), None)
-        if header:
-            columns = header
-    with open(path, "a" if append else "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
-        if new:
-            writer.writeheader()
-        for r in rows:
-            writer.writerow({k: ("" if v is None else v) for k, v in r.items()})
-        f.flush()
-
-
-def read_rows(path) -> list[dict[str, Any]]:
-    """Read a CSV written by `write_rows`, turning numeric fields back into numbers."""
-
-    def convert(v: str):
-        if v == "":
-            return None
-        try:
-            x = float(v)
-        except ValueError:
-            return v
-        return int(x) if x.is_integer() and "." not in v and "e" not in v.lower() else x
-
-    with open(path, newline="") as f:
-        return [{k: convert(v) for k, v in r.items()} for r in csv.DictReader(f)]

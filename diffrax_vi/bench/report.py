@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .stability import (
+from .stability_results import (
     REFERENCE_RATES,
     accuracy_tolerance,
     convergence_rates,

@@ -16,12 +16,12 @@ from ..ansatz.shallow import ShallowNetBasis
 from ..formulation import FreeEndpoints
 from ..methods import CGVI
 from ..projection import VariableProjection
-from ..root_finders.damped_newton import LevenbergMarquardt
 from ..quadrature import GaussLegendre
+from ..root_finders.damped_newton import LevenbergMarquardt
 from ..seeding.policy import SeedPolicy
 from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep
 from ..solver import NetworkVI
-from .harness import Adaptive, Entry, Fixed, Heyoka, SciPy
+from .entries import Adaptive, Entry, Fixed, Heyoka, SciPy
 from .peers import heyoka_available
 
 __all__ = ["Setting", "SETTINGS", "PEERS_ADAPTIVE", "networkvi_entries", "energy_entries",

@@ -13,7 +13,8 @@ import dataclasses
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from .harness import Adaptive, Entry, long_time_energy, work_precision
+from .entries import Adaptive, Entry
+from .harness import long_time_energy, work_precision
 
 __all__ = [
     "WorkPrecisionCase",
@@ -81,7 +82,7 @@ class WorkPrecisionSweep:
         return out
 
     def run(self, cases: Sequence[WorkPrecisionCase], cache: dict, emit: Emit) -> None:
-        from .harness import Fixed
+        from .entries import Fixed
         from .suites import SETTINGS
 
         problem = cases[0].problem
