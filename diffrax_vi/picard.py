@@ -25,6 +25,7 @@ which costs nothing unless some member of a batch needs it.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -41,7 +42,10 @@ __all__ = [
     "picard_plan", "picard_solve", "newton_solve", "start_at_rest", "step_residual",
 ]
 
-# Updates made without a test in between, before the loop that tests each one.
+# Updates made first without any test (their changes are not even measured), then updates
+# made without a test in between (they measure the changes that the first test reads), before
+# the loop that tests each one: a step that contracts as most do ends without entering it.
+PLAIN = 2
 UNROLLED = 3
 # Updates at most before the iteration is handed to the root finder's own.
 MAX_UPDATES = 40
@@ -120,14 +124,29 @@ def kinetic_structure(term, t, q, args) -> KineticStructure | None:
             zeros = jax.tree_util.tree_map(
                 lambda a: np.zeros(a.shape, a.dtype), (jnp.asarray(t), q, v, dynamic)
             )
-            # one compiled program (op by op, each operation would compile on its own)
-            known = np.asarray(jax.jit(mass)(*zeros), np.float64)
+            try:
+                hash(static)
+                program = functools.partial(_mass_program, static)
+            except TypeError:  # a term with unhashable settings: compiled for this call
+                program = jax.jit(mass)
+            known = np.asarray(program(*zeros), np.float64)
     return KineticStructure(
         mass_constant=mass_constant,
         offset_moves=bool(used_offset[0] or used_offset[1]),
         force_reads_velocity=bool(used_force[2]),
         mass=known,
     )
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _mass_program(static, t, q, v, dynamic):
+    """`∂²L/∂v²` as one compiled program (operation by operation, each would compile on its
+    own), reused by every step traced with the same term."""
+    def lagrangian(v):
+        term, args = eqx.combine(dynamic, static)
+        return term(t, q, v, args)
+
+    return jax.hessian(lagrangian)(v)
 
 
 class PicardPlan(NamedTuple):
@@ -308,11 +327,14 @@ def extrapolation(nodes: np.ndarray, ratio: Array, values: Array) -> Array:
                 if n != m:
                     poly *= np.poly1d([c[i], 1.0 - c[n]]) / (c[m] - c[n])
             coeffs[: poly.order + 1, i, m] = poly.coeffs[::-1]
-    # the weights as polynomials in ρ (one fused elementwise kernel), then one product
-    weights = jnp.asarray(coeffs[r - 1], values.dtype)
+    # each power's constant map applied to the values (one product), then the polynomial in
+    # ρ summed elementwise: under `vmap`, where ρ differs between members, no member's
+    # weights are formed
+    terms = _combine(coeffs.reshape(r * r, r), values).reshape(r, r, values.shape[-1])
+    out = terms[r - 1]
     for power in range(r - 2, -1, -1):
-        weights = weights * ratio + jnp.asarray(coeffs[power], values.dtype)
-    return jnp.sum(weights[None, :, :] * values.T[:, None, :], axis=-1).T
+        out = out * ratio + terms[power]
+    return out
 
 
 def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
@@ -342,7 +364,7 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
         dx = -_combine(plan.kinv, rows)
         return jnp.where(live, h * kinetic.times_minv(dx[:k]), 0), dx[k]
 
-    end = _iterate(z0, f0, residual, correction, UNROLLED)
+    end = _iterate(z0, f0, residual, correction, UNROLLED, PLAIN)
     return _solved(structure, ctx, span, kinetic, end, g0, z0)
 
 
@@ -372,10 +394,10 @@ def newton_solve(structure: KineticStructure, ctx, span, start: PicardSolve,
     return solved._replace(iterations=solved.iterations + start.iterations)
 
 
-def _iterate(z0, f0, residual, correction, unrolled: int) -> _Carry:
+def _iterate(z0, f0, residual, correction, unrolled: int, plain: int = 0) -> _Carry:
     """`z ← z + correction(z, r, c)` from `z0` until the change is at round-off (predicted or
-    seen), growing, not finite, or `MAX_UPDATES` were made; the first `unrolled` updates
-    without a test in between."""
+    seen), growing, not finite, or `MAX_UPDATES` were made; the first `plain` updates measure
+    nothing, the next `unrolled` have no test in between."""
     dtype = z0[1].dtype
     eps = float(jnp.finfo(dtype).eps)
     tiny = jnp.finfo(dtype).tiny
@@ -386,9 +408,9 @@ def _iterate(z0, f0, residual, correction, unrolled: int) -> _Carry:
         dz = jnp.concatenate([dc, dp[None]])
         z = (c.z[0] + dc, c.z[1] + dp)
         # the three sizes the tests need, in one reduction (one kernel)
-        delta, size, fsize = jnp.max(jnp.abs(jnp.stack([
+        delta, size, fsize = _max_abs(jnp.stack([
             dz, jnp.concatenate([z[0], z[1][None]]), jnp.concatenate([r, cont[None]]),
-        ])), axis=(1, 2))
+        ]))
         change = delta / jnp.maximum(size, tiny)
         known = jnp.isfinite(c.change) & (c.change > 0)
         rate = change / jnp.where(known, c.change, 1)
@@ -410,10 +432,27 @@ def _iterate(z0, f0, residual, correction, unrolled: int) -> _Carry:
     inf = jnp.full((), jnp.inf, dtype)
     zero = jnp.array(0, jnp.int32)
     no = jnp.array(False)
-    carry = _Carry(z0, f0, inf, inf, inf, zero, zero, no, no)
+    z, f = z0, f0
+    for _ in range(plain):
+        (r, cont), f = residual(z)
+        dc, dp = correction(z, r, cont)
+        z = (z[0] + dc, z[1] + dp)
+    carry = _Carry(z, f, inf, inf, inf, zero, jnp.array(plain, jnp.int32), no, no)
     for _ in range(unrolled):
         carry = update(carry)
     return jax.lax.while_loop(lambda c: ~c.done, update, carry)
+
+
+def _max_abs(x: Array) -> Array:
+    """`max |x|` over all axes but the first, by halving elementwise maxima: a reduction of
+    these sizes costs far more as a reduction kernel (alone and under `vmap`) than as a
+    few fused elementwise operations."""
+    a = jnp.abs(x.reshape(x.shape[0], -1))
+    while a.shape[1] > 1:
+        half = a.shape[1] // 2
+        top = jnp.maximum(a[:, :half], a[:, half:2 * half])
+        a = top if a.shape[1] % 2 == 0 else jnp.concatenate([top, a[:, 2 * half:]], axis=1)
+    return a[:, 0]
 
 
 def _solved(structure, ctx, span, kinetic: _Kinetic | None, end: _Carry, g0, z0

@@ -53,8 +53,45 @@ def _features(basis: AbstractBasis) -> int:
     return basis.width if isinstance(basis, ShallowNetBasis) else basis.num_params()
 
 
-def _as_is(a):
-    return a
+def _features_at(theta, basis: AbstractBasis, nodes: Array, dim: int, dtype):
+    """`(value, slope, hidden)`: the features' values and τ-slopes (`(R + 2, S, D)`) at the
+    nodes, then at `τ = 0` and `τ = 1`, and the hidden layer `(w, β)` of a network (`()` for
+    a linear ansatz)."""
+    nodes = jnp.asarray(nodes).astype(dtype)
+    taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], dtype)])
+    if isinstance(basis, ShallowNetBasis):
+        _, w, beta = basis.split(theta)
+        z = w * taus[:, None, None] + beta  # (K, S, D)
+        value, slope = jax.jvp(basis.activation, (z,), (jnp.ones_like(z),))
+        return value, w * slope, (w, beta)
+    # A linear ansatz: its basis functions are the features, the same in every coordinate
+    # (column j of the identity as parameters gives function j).
+    eye = jnp.eye(basis.num_params(), dtype=dtype)
+    value, slope = jax.vmap(
+        lambda tau: jax.jvp(lambda t: basis.evaluate(eye, t), (tau,), (jnp.ones_like(tau),))
+    )(taus)
+    return (jnp.repeat(value[:, :, None], dim, axis=2),  # (K, P, D)
+            jnp.repeat(slope[:, :, None], dim, axis=2), ())
+
+
+def _known_features(theta, basis: AbstractBasis, nodes, dim: int, dtype):
+    """`_features_at` of inputs known when the step is traced, as NumPy arrays, by one
+    compiled program (operation by operation, each would compile on its own)."""
+    arrays, static = eqx.partition((theta, basis, nodes), eqx.is_array)
+    try:
+        hash(static)
+        program = _features_program
+    except TypeError:  # an ansatz with unhashable settings: compiled for this call
+        program = jax.jit(_features_program.__wrapped__, static_argnums=(1, 2, 3))
+    with jax.ensure_compile_time_eval():
+        out = program(arrays, static, dim, dtype)
+    return jax.tree_util.tree_map(np.asarray, out)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _features_program(arrays, static, dim: int, dtype):
+    theta, basis, nodes = eqx.combine(arrays, static)
+    return _features_at(theta, basis, nodes, dim, dtype)
 
 
 class VariableProjection(FreeEndpoints):
@@ -138,30 +175,12 @@ class VariableProjection(FreeEndpoints):
 
     def _span(self, theta: Array, basis: AbstractBasis, nodes: Array, weights: Array,
               dim: int, dtype) -> ProjectedSpan:
-        # Known when the step is traced (see `feature_span`): NumPy where it rounds as JAX.
+        # Known when the step is traced (see `feature_span`): the features' values by one
+        # compiled program, the rest as `feature_span` computes it.
         known = not any_traced(theta, basis, nodes, weights)
-        xp = np if known else jnp
-        host = np.asarray if known else _as_is
-        nodes = xp.asarray(nodes).astype(dtype)
-        n = nodes.shape[0]
-        k = self.span_rank(basis, n)
-        taus = xp.concatenate([nodes, xp.array([0.0, 1.0], dtype)])
-        if isinstance(basis, ShallowNetBasis):
-            _, w, beta = (host(a) for a in basis.split(host(theta)))
-            hidden = (w, beta)
-            z = w * taus[:, None, None] + beta  # (K, S, D)
-            value, slope = (host(a) for a in jax.jvp(basis.activation, (z,), (xp.ones_like(z),)))
-            slope = w * slope
-        else:
-            # A linear ansatz: its basis functions are the features, the same in every
-            # coordinate (column j of the identity as parameters gives function j).
-            hidden = ()
-            eye = jnp.eye(basis.num_params(), dtype=dtype)
-            value, slope = (host(a) for a in jax.vmap(
-                lambda tau: jax.jvp(lambda t: basis.evaluate(eye, t), (tau,), (jnp.ones_like(tau),))
-            )(taus))
-            value = xp.repeat(value[:, :, None], dim, axis=2)  # (K, P, D)
-            slope = xp.repeat(slope[:, :, None], dim, axis=2)
+        features = _known_features if known else _features_at
+        value, slope, hidden = features(theta, basis, nodes, dim, jnp.dtype(dtype))
+        k = self.span_rank(basis, nodes.shape[0])
         rtol = self.rtol if self.rtol is not None else float(jnp.finfo(dtype).eps) ** 0.625
         span = feature_span(value, slope, weights, k, rtol, hidden)
         return span if known else jax.lax.stop_gradient(span)

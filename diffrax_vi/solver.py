@@ -217,6 +217,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         ctx = self.step_context(terms, t0, t1, y0, args)
         seed = self.seeder.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
+        node_values = (jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2
+        engine = self._picard_engine(ctx)
+        if engine is not None:  # the first step continues the curve at rest
+            node_values = start_at_rest(engine[1], ctx)
         return NetworkVIState(
             seed=seed,
             iterations=zero,
@@ -239,7 +243,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             ),
             first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
             compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
-            node_values=(jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2,
+            node_values=node_values,
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -328,13 +332,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         fresh = record.fresh if made_jump is False else record.fresh | made_jump
         nodes = self.quadrature.nodes_weights_np()[0]
         ratio = ctx.h / record.h_prev
-        rest = start_at_rest(structure, ctx)
-        f_prev, g_prev = state.node_values
-        f_start = jnp.where(fresh, rest[0], extrapolation(nodes, ratio, f_prev))
+        # The node values of the last step continued (those of the curve at rest before the
+        # first step, from `init`); the offsets where they move (else they are constant). A
+        # start only: nothing of it is differentiated.
+        f_start, g_start = jax.lax.stop_gradient(state.node_values)
+        f_start = extrapolation(nodes, ratio, f_start)
         if structure.offset_moves:
-            g_start = jnp.where(fresh, rest[1], extrapolation(nodes, ratio, g_prev))
-        else:
-            g_start = rest[1]  # constant offsets: those at rest
+            g_start = extrapolation(nodes, ratio, g_start)
+        if made_jump is not False:  # after a jump of the state, from rest again
+            rest = start_at_rest(structure, ctx)
+            f_start = jnp.where(made_jump, rest[0], f_start)
+            g_start = jnp.where(made_jump, rest[1], g_start)
         dtype = ctx.q0.dtype
         eps = float(jnp.finfo(dtype).eps)
         tolerance = (self.root_finder.ftol * eps * _residual_scale(ctx)).astype(dtype)
