@@ -142,6 +142,21 @@ def _check_scalar(value, what: str, dtype) -> Array:
     return value
 
 
+def _check_force(value, q) -> Array:
+    shape, dtype = jnp.shape(value), jnp.result_type(value)
+    if shape != jnp.shape(q):
+        raise ValueError(
+            f"the force must return an array of the coordinates' shape {jnp.shape(q)}; it "
+            f"returned shape {shape}"
+        )
+    if dtype != jnp.result_type(q):
+        raise ValueError(
+            f"the force returned dtype {dtype} for {jnp.result_type(q)} coordinates; keep it "
+            "in the working precision (no float64 constants, no integer arrays)"
+        )
+    return value
+
+
 class LagrangianTerm(AbstractMechanicalTerm):
     """A mechanical system given by its Lagrangian `L(t, q, v, args) -> scalar`.
 
@@ -158,11 +173,18 @@ class LagrangianTerm(AbstractMechanicalTerm):
       `equinox.Module` (e.g. a neural Lagrangian), whose array leaves are differentiable.
     - `velocity`: optional closed-form inverse Legendre map `v(t, q, p, args)`.
     - `legendre_iterations`: Newton steps of the numerical inverse (default 1).
+    - `force`: optional non-conservative generalised force `F(t, q, v, args) -> (D,)`
+      (friction, damping, a drive, a control torque). It enters the discrete action's
+      variation as virtual work (the Lagrange–d'Alembert principle): every solver sees the
+      force `∂L/∂q + F`, the variational steps through the same quadrature as the action,
+      the explicit ones in Hamilton's equations `ṗ = ∂L/∂q + F`. `None` (default): a
+      conservative system.
     """
 
     lagrangian: Callable
     velocity_map: Callable | None = None
     legendre_iterations: int = eqx.field(static=True, default=1)
+    nonconservative_force: Callable | None = None
 
     def __init__(
         self,
@@ -170,11 +192,14 @@ class LagrangianTerm(AbstractMechanicalTerm):
         velocity: Callable | None = None,
         *,
         legendre_iterations: int = 1,
+        force: Callable | None = None,
     ):
         if not callable(lagrangian):
             raise TypeError(f"lagrangian must be callable, got {type(lagrangian).__name__}")
         if velocity is not None and not callable(velocity):
             raise TypeError(f"velocity must be callable or None, got {type(velocity).__name__}")
+        if force is not None and not callable(force):
+            raise TypeError(f"force must be callable or None, got {type(force).__name__}")
         if not isinstance(legendre_iterations, int) or legendre_iterations < 1:
             raise ValueError(
                 f"legendre_iterations must be a positive int, got {legendre_iterations!r}"
@@ -182,6 +207,7 @@ class LagrangianTerm(AbstractMechanicalTerm):
         self.lagrangian = lagrangian
         self.velocity_map = velocity
         self.legendre_iterations = legendre_iterations
+        self.nonconservative_force = force
 
     def __call__(self, t, q, v, args) -> Array:
         """Evaluate `L(t, q, v, args)`, checking that it is a scalar of `q`'s dtype."""
@@ -189,7 +215,16 @@ class LagrangianTerm(AbstractMechanicalTerm):
 
     def momentum_and_force(self, t, q, v, args):
         f, p = jax.grad(self.__call__, argnums=(1, 2))(t, q, v, args)
+        if self.nonconservative_force is not None:
+            f = f + self.external_force(t, q, v, args)
         return p, f
+
+    def external_force(self, t, q, v, args) -> Array:
+        """The non-conservative force `F(t, q, v, args)` (zero without one), checked to be an
+        array of `q`'s shape and dtype."""
+        if self.nonconservative_force is None:
+            return jnp.zeros_like(q)
+        return _check_force(self.nonconservative_force(t, q, v, args), q)
 
     def velocity(self, t, q, p, args):
         """Inverse Legendre map `p ↦ v`: closed form if given, else Newton from `v = 0`."""

@@ -12,6 +12,9 @@ from .charged_particle import charged_particle as charged_particle
 from .coupled_oscillators import coupled_oscillators as coupled_oscillators
 from .double_pendulum import double_pendulum as double_pendulum
 from .fermi_pasta_ulam import fermi_pasta_ulam as fermi_pasta_ulam
+from .forced_oscillator import damped_oscillator as damped_oscillator
+from .forced_oscillator import driven_oscillator as driven_oscillator
+from .forced_oscillator import forced_oscillator as forced_oscillator
 from .harmonic_oscillator import harmonic_oscillator as harmonic_oscillator
 from .henon_heiles import henon_heiles as henon_heiles
 from .kepler import kepler as kepler
@@ -29,7 +32,10 @@ __all__ = [
     "charged_particle",
     "coupled_oscillators",
     "double_pendulum",
+    "damped_oscillator",
+    "driven_oscillator",
     "fermi_pasta_ulam",
+    "forced_oscillator",
     "harmonic_oscillator",
     "henon_heiles",
     "kepler",
