@@ -132,9 +132,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         if self.root_finder is None:  # the formulation's own default
             if isinstance(self.formulation, VariableProjection):
                 # On a network's feature span the confirming update moves the step onto the
-                # root of the rounded residual, which is biased there (measured on the
-                # oscillator: +1e-2 eps of energy a step with it, none without; see the
-                # benchmarks page); on a polynomial span it removes the first update's bias.
+                # root of the rounded residual, which is biased there (an energy drift; the
+                # benchmarks page has the figures); on a polynomial span it removes the
+                # first update's bias.
                 confirm = not isinstance(self.basis, ShallowNetBasis)
                 self.root_finder = RoundoffNewton(confirm=confirm)
             else:
@@ -416,14 +416,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
         return moved, p1, compensation, violation
 
-    def _finish_step(
-        self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-        compensation, violation, forces=None, node_values=None,
-    ):
-        """Failure results, dense output, the new solver state (the seed policy's record
-        accepts the step). `violation` is the end state's distance from the primary
-        constraint (`end_on_constraint`); `forces`, the forces at the nodes of the converged
-        curve where the solve has them (else they are evaluated here)."""
+    def _step_result(self, ctx, state, q1, p1, result, violation):
+        """`(finite, result, constraint, first)`: whether the end state is finite, the step's
+        result with the failures that only the end state shows (not finite, an invalid step,
+        drift off the primary constraint), the constraint distance relative to the residual
+        scale, and the run's first such distance."""
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         result = diffrax.RESULTS.where(
             finite | (result != diffrax.RESULTS.successful),
@@ -450,6 +447,18 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             STEP_FAILURES["vi_constraint_drift"],
             result,
         )
+        return finite, result, constraint, first
+
+    def _finish_step(
+        self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
+        compensation, violation, forces=None, node_values=None,
+    ):
+        """Failure results, dense output, the new solver state (the seed policy's record
+        accepts the step). `violation` is the end state's distance from the primary
+        constraint (`end_on_constraint`); `forces`, the forces at the nodes of the converged
+        curve where the solve has them (else they are evaluated here)."""
+        finite, result, constraint, first = self._step_result(ctx, state, q1, p1, result,
+                                                               violation)
         # A failed step's end state is never passed off as data: the steps before it stay,
         # this one is NaN (with `throw=False`), and `report` says where and why it failed.
         failed = result != diffrax.RESULTS.successful
