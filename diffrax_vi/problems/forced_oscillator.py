@@ -11,7 +11,7 @@ import numpy as np
 
 from ..terms import LagrangianTerm
 from .base import ClosedFormFlow, Problem, as_vector, make_state, resolve_dtype
-from .harmonic_oscillator import _Hamiltonian, _Lagrangian, _Velocity
+from .harmonic_oscillator import OscillatorHamiltonian, OscillatorLagrangian, OscillatorVelocity
 
 __all__ = ["damped_oscillator", "driven_oscillator", "forced_oscillator"]
 
@@ -101,14 +101,14 @@ def forced_oscillator(
 
     return Problem(
         name="forced_oscillator",
-        term=LagrangianTerm(_Lagrangian(m, k), velocity=_Velocity(m),
+        term=LagrangianTerm(OscillatorLagrangian(m, k), velocity=OscillatorVelocity(m),
                             force=_Force(c, a, big_omega)),
         y0=make_state(q0v, p0v, dtype),
         t0=start,
         t1=float(t1),
         dt=float(dt),
         params={"m": m, "k": k, "damping": c, "amplitude": a, "frequency": big_omega},
-        hamiltonian=_Hamiltonian(m, k),
+        hamiltonian=OscillatorHamiltonian(m, k),
         reference_flow=ClosedFormFlow(solution),
         reference_method="closed form",
     )

@@ -14,7 +14,7 @@ from .base import ClosedFormFlow, Problem, as_vector, make_state, resolve_dtype
 __all__ = ["harmonic_oscillator"]
 
 
-class _Lagrangian(eqx.Module):
+class OscillatorLagrangian(eqx.Module):
     m: float = eqx.field(static=True)
     k: float = eqx.field(static=True)
 
@@ -22,14 +22,14 @@ class _Lagrangian(eqx.Module):
         return jnp.sum(0.5 * self.m * v**2 - 0.5 * self.k * q**2)
 
 
-class _Velocity(eqx.Module):
+class OscillatorVelocity(eqx.Module):
     m: float = eqx.field(static=True)
 
     def __call__(self, t, q, p, args):
         return p / self.m
 
 
-class _Hamiltonian(eqx.Module):
+class OscillatorHamiltonian(eqx.Module):
     m: float = eqx.field(static=True)
     k: float = eqx.field(static=True)
 
@@ -82,13 +82,13 @@ def harmonic_oscillator(
 
     return Problem(
         name="harmonic_oscillator",
-        term=LagrangianTerm(_Lagrangian(m, k), velocity=_Velocity(m)),
+        term=LagrangianTerm(OscillatorLagrangian(m, k), velocity=OscillatorVelocity(m)),
         y0=make_state(q0v, p0v, dtype),
         t0=float(t0),
         t1=float(t1),
         dt=float(dt),
         params={"m": m, "k": k},
-        hamiltonian=_Hamiltonian(m, k),
+        hamiltonian=OscillatorHamiltonian(m, k),
         reference_flow=ClosedFormFlow(solution),
         reference_method="closed form",
     )
