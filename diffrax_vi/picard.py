@@ -327,14 +327,29 @@ def extrapolation(nodes: np.ndarray, ratio: Array, values: Array) -> Array:
                 if n != m:
                     poly *= np.poly1d([c[i], 1.0 - c[n]]) / (c[m] - c[n])
             coeffs[: poly.order + 1, i, m] = poly.coeffs[::-1]
-    # each power's constant map applied to the values (one product), then the polynomial in
-    # ρ summed elementwise: under `vmap`, where ρ differs between members, no member's
-    # weights are formed
-    terms = _combine(coeffs.reshape(r * r, r), values).reshape(r, r, values.shape[-1])
-    out = terms[r - 1]
-    for power in range(r - 2, -1, -1):
-        out = out * ratio + terms[power]
-    return out
+    # the weights as polynomials in ρ (one fused elementwise kernel), then one product; under
+    # `vmap` (ρ differs between members) the product is one batched `dot`, so that the
+    # weights' kernel is not fused into a slow reduction over the members
+    def weights_at(ratio):
+        weights = jnp.asarray(coeffs[r - 1], values.dtype)
+        for power in range(r - 2, -1, -1):
+            weights = weights * ratio + jnp.asarray(coeffs[power], values.dtype)
+        return weights
+
+    def alone(ratio, values):
+        return jnp.sum(weights_at(ratio)[None, :, :] * values.T[:, None, :], axis=-1).T
+
+    apply = jax.custom_batching.custom_vmap(alone)
+
+    @apply.def_vmap
+    def _batched(axis_size, in_batched, ratio, values):
+        ratio = ratio if in_batched[0] else jnp.broadcast_to(ratio, (axis_size,))
+        values = values if in_batched[1] else jnp.broadcast_to(values, (axis_size, *values.shape))
+        weights = jax.vmap(weights_at)(ratio)
+        return jnp.einsum("bim,bmd->bid", weights, values), True
+
+    # a start only: nothing of it is differentiated (the layouts have no derivative rule)
+    return apply(*jax.lax.stop_gradient((jnp.asarray(ratio, values.dtype), values)))
 
 
 def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
