@@ -45,7 +45,7 @@ __all__ = [
 # Updates made first without any test (their changes are not even measured), then updates
 # made without a test in between (they measure the changes that the first test reads), before
 # the loop that tests each one: a step that contracts as most do ends without entering it.
-PLAIN = 1
+PLAIN = 2
 UNROLLED = 3
 # Updates at most before the iteration is handed to the root finder's own.
 MAX_UPDATES = 40
