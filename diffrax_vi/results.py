@@ -5,7 +5,8 @@ for the ways the nonlinear solve of a step can end without a root, one for a ste
 be taken at all, one for a converged all-parameter network step whose end state has drifted
 off the primary constraint of a Lagrangian linear in the velocities (by more than `eps ** 0.5`
 relative to `1 + max(|q_n|, |p_n|)`, and 100 times as far as at the run's first step; see
-`diffrax_vi.degenerate`):
+`diffrax_vi.degenerate`), one for a step that cannot meet the term's holonomic constraints
+(`diffrax_vi.holonomic`):
 
 | member | `failure_kind` | meaning |
 |---|---|---|
@@ -15,6 +16,7 @@ relative to `1 + max(|q_n|, |p_n|)`, and 100 times as far as at the run's first 
 | `RESULTS.vi_step_singular` | `"singular"` | the linear solve of an iteration broke down |
 | `RESULTS.vi_step_size_invalid` | `"step_size"` | the step is zero or not finite (a zero `dt0`) |
 | `RESULTS.vi_constraint_drift` | `"constraint_drift"` | end state off `p = ϑ(q)` (first order) |
+| `RESULTS.vi_constraint_unmet` | `"constraint_unmet"` | holonomic constraint `g = 0` not met |
 
 diffrax's own failures have kinds too (`"max_steps"`, `"max_rejected"`, `"dt_min"`), and so do
 the results of optimistix and lineax (a divergent root find is `"diverged"`); see `FAILURE_KINDS`.
@@ -94,6 +96,14 @@ _MESSAGES = {
         "step): its roots are not isolated and its accuracy is lost. Use the projected step "
         "(formulation=None or VariableProjection()) or a polynomial CGVI." + _WHERE
     ),
+    "vi_constraint_unmet": (
+        "diffrax_vi: a holonomic constraint g(t, q) = 0 of the term, or its hidden velocity "
+        "constraint G(q) v + dg/dt = 0, could not be met (by sqrt(eps) relative to the "
+        "state's size): the step's start is off them (start on both: project the initial "
+        "state), or the step's solve cannot reach them (a smaller step, or constraints with "
+        "independent gradients). The largest drift so far is in "
+        "sol.solver_state.holonomic_drift." + _WHERE
+    ),
 }
 
 
@@ -117,6 +127,7 @@ FAILURE_KINDS = {
     "vi_step_singular": "singular",
     "vi_step_size_invalid": "step_size",
     "vi_constraint_drift": "constraint_drift",
+    "vi_constraint_unmet": "constraint_unmet",
     # diffrax's own failures: the step budget, the step size controller.
     "max_steps_reached": "max_steps",
     "max_steps_rejected": "max_rejected",
@@ -161,7 +172,8 @@ def failure_kind(result) -> str | np.ndarray:
     `"ok"` (`successful`, `event_occurred`); for a step's nonlinear solve `"maxiter"`,
     `"stalled"`, `"nonfinite"`, `"singular"`, and `"diverged"` (optimistix's divergence);
     `"step_size"` (a zero or non-finite step); `"constraint_drift"` (a first-order
-    Lagrangian's step off its primary constraint); diffrax's `"max_steps"` (the step budget ran
+    Lagrangian's step off its primary constraint); `"constraint_unmet"` (a holonomic
+    constraint not met); diffrax's `"max_steps"` (the step budget ran
     out), `"max_rejected"` and `"dt_min"` (adaptive steps); `"other"` for anything else.
 
     Accepts a `diffrax.RESULTS` or `optimistix.RESULTS` member (e.g. `sol.result`), concrete,

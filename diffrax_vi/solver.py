@@ -14,6 +14,7 @@ import optimistix as optx
 from jaxtyping import Array
 
 from .ansatz.base import AbstractBasis
+from .ansatz.polynomial import LagrangeBasis, lobatto_points
 from .ansatz.shallow import ShallowNetBasis
 from .degenerate import (
     CONSTRAINT_GROWTH,
@@ -29,7 +30,9 @@ from .formulation import (
     stage_values,
 )
 from .hidden_layers import UniformLayer
+from .holonomic import constrained_step, lobatto_rule
 from .interpolation import NetworkInterpolation
+from .lagrange import lagrange_weights
 from .lazy import unless_all_skip
 from .picard import (
     extrapolation,
@@ -218,7 +221,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         seed = self.seeder.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
         node_values = (jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2
-        engine = self._picard_engine(ctx)
+        engine = None if ctx.term.has_constraints else self._picard_engine(ctx)
         if engine is not None:  # the first step continues the curve at rest
             node_values = start_at_rest(engine[1], ctx)
         return NetworkVIState(
@@ -244,6 +247,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
             compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
             node_values=node_values,
+            holonomic_drift=jnp.zeros(2, ctx.q0.dtype),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -262,6 +266,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """Seed -> solve -> accept."""
         ctx = self.step_context(terms, t0, t1, y0, args)
         state = solver_state
+        if ctx.term.has_constraints:
+            return self._constrained_step(ctx, state, made_jump)
         engine = self._picard_engine(ctx)
         if engine is not None:
             return self._picard_step(ctx, state, made_jump, *engine)
@@ -396,6 +402,61 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             compensation, violation, values[0], node_values=values,
         )
 
+    def _constrained_step(self, ctx, state, made_jump):
+        """The step of a term with holonomic constraints (`diffrax_vi.holonomic`): the
+        polynomial of the basis's degree through values at the Lobatto points, one
+        multiplier per constraint and point, the end momentum on the hidden constraint."""
+        if not isinstance(self.basis, LagrangeBasis):
+            raise ValueError(
+                "holonomic constraints are stepped by the polynomial step: use "
+                f"diffrax_vi.CGVI(degree) (a LagrangeBasis), not a {type(self.basis).__name__}"
+            )
+        if self.error_estimate is not None:
+            raise ValueError(
+                "error_estimate is not available with holonomic constraints: use constant "
+                "steps (the constrained step has no companion estimate yet)"
+            )
+        degree = self.basis.degree
+        solved = constrained_step(ctx.term, degree, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args,
+                                  self.root_find_max_steps)
+        dtype = ctx.q0.dtype
+        lobatto = lobatto_points(degree)
+        # the curve in the basis's own parameters: its values at the basis's points
+        to_basis = jnp.stack([
+            lagrange_weights(lobatto, jnp.asarray(x, dtype)) for x in self.basis.control_points
+        ])
+        theta = to_basis @ solved.values
+        q1, p1 = solved.values[-1], solved.p1
+
+        # The forces at the quadrature nodes for the dense momentum: the system's, less the
+        # constraint's reaction `Gᵀλ` with the multipliers interpolated between the points.
+        def curve(tau):
+            return self.basis.evaluate(theta, tau)
+
+        q_nodes, dq_nodes = stage_values(curve, ctx.nodes)
+        _, forces = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
+        _, weights, _ = lobatto_rule(degree)
+        multipliers = solved.impulses / (ctx.h * jnp.asarray(weights, dtype))[:, None]
+        at_nodes = jax.vmap(lambda c: lagrange_weights(lobatto, c))(ctx.nodes) @ multipliers
+        times = ctx.t + ctx.nodes * ctx.h
+        gradients = jax.vmap(ctx.term.constraint_jacobian, in_axes=(0, 0, None))(
+            times, q_nodes, ctx.args
+        )
+        forces = forces - jnp.einsum("imd,im->id", gradients, at_nodes)
+
+        record = self.seeder.after_jump(state.seed, made_jump)
+        no = jnp.array(False)
+        eps = float(jnp.finfo(dtype).eps)
+        tolerance = jnp.asarray(8 * eps, dtype)
+        (q1, p1), y_error, dense_info, new_state, result = self._finish_step(
+            ctx, state, record, Seed(None, no, no), theta, q1, p1, solved.iterations,
+            solved.result, solved.residual.astype(dtype), tolerance, no, state.compensation,
+            jnp.zeros((), dtype), forces,
+        )
+        drift = jnp.maximum(state.holonomic_drift, solved.drift.astype(dtype))
+        new_state = eqx.tree_at(lambda s: s.holonomic_drift, new_state, drift)
+        return (q1, p1), y_error, dense_info, new_state, result
+
     def _end_state(self, ctx, state, dq, dp, on_constraint: bool):
         """`(q1, p1, compensation, violation)`: the step's start plus its increments
         (compensated where `NetworkVI.compensated`); where `on_constraint`, a first-order
@@ -520,6 +581,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 lambda e: jnp.where(failed, jnp.zeros_like(e), e), compensation
             ),
             node_values=state.node_values if node_values is None else node_values,
+            holonomic_drift=state.holonomic_drift,
         )
         y_error = None
         if self.error_estimate is not None:
@@ -528,6 +590,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return (q1, p1), y_error, dense_info, new_state, result
 
     def func(self, terms, t0, y0, args):
+        term, direction = unwrap_term(terms)
+        if term.has_constraints:  # the unconstrained field: only its size is read
+            v, f = term.hamilton_vf(direction * t0, y0, args)
+            return direction * v, direction * f
         return terms.vf(t0, y0, args)
 
 

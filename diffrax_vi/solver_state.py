@@ -46,6 +46,9 @@ class NetworkVIState(eqx.Module):
     - `node_values`: `(F, G)`, each `(R, D)`: the forces and the momentum's offsets at the
       nodes of the last accepted step, from which the Jacobian-free iteration
       (`diffrax_vi.picard`) starts the next; zeros where that iteration is not used.
+    - `holonomic_drift`: `(2,)`, for a term with holonomic constraints the largest
+      `|g(t, q)|` and `|G(q) v + ∂g/∂t|` at the ends of the steps so far (position and
+      velocity level); zeros without constraints.
     """
 
     seed: SeedRecord
@@ -62,6 +65,7 @@ class NetworkVIState(eqx.Module):
     first_constraint: Array
     compensation: tuple[Array, Array]
     node_values: tuple[Array, Array]
+    holonomic_drift: Array
 
     @property
     def theta(self) -> PyTree:

@@ -51,6 +51,24 @@ class AbstractMechanicalTerm(diffrax.AbstractTerm):
     def energy(self, t, q, p, args) -> Array:
         raise NotImplementedError
 
+    @property
+    def has_constraints(self) -> bool:
+        """Whether the system has holonomic constraints `g(t, q) = 0` (see `LagrangianTerm`)."""
+        return False
+
+    def constraint_values(self, t, q, args) -> Array:
+        """`g(t, q)`, the holonomic constraints' values (zero on the constraint)."""
+        raise NotImplementedError
+
+    def constraint_jacobian(self, t, q, args) -> Array:
+        """`G = ∂g/∂q`, of shape `(M, D)`."""
+        return jax.jacfwd(self.constraint_values, argnums=1)(t, q, args)
+
+    def constraint_rate(self, t, q, args) -> Array:
+        """`∂g/∂t` (zero for constraints that do not depend on time)."""
+        t = jnp.asarray(t, jnp.result_type(q))
+        return jax.jacfwd(self.constraint_values, argnums=0)(t, q, args)
+
     def check_state(self, y: Any) -> tuple[Array, Array]:
         """Return `(q, p)` if `y` is a state this term can integrate, else raise `ValueError`.
 
@@ -80,6 +98,24 @@ class AbstractMechanicalTerm(diffrax.AbstractTerm):
         # diffrax evaluates `vf` on `y0` before any solver sees it: refuse a malformed state
         # here, with the message that names the expected form, not a JAX error further in.
         q, p = self.check_state(y)
+        v, f = self.hamilton_vf(t, (q, p), args)
+        if self.has_constraints:
+            # diffrax evaluates `vf` for its shapes with every solver, so the refusal is at
+            # run time (a traced "always true"), where only an explicit solver gets.
+            always = jnp.isnan(jnp.sum(p)) | True
+            v = eqx.error_if(
+                v,
+                always,
+                "this term has holonomic constraints, which explicit diffrax solvers (Tsit5, "
+                "Dopri8, ...) cannot honour: they would drift off g(t, q) = 0. Integrate it "
+                "with a variational solver (diffrax_vi.CGVI), or write the system in "
+                "coordinates that satisfy the constraints.",
+            )
+        return v, f
+
+    def hamilton_vf(self, t, y, args):
+        """Hamilton's equations `(q̇, ṗ)` of the system without its holonomic constraints."""
+        q, p = y
         v = self.velocity(t, q, p, args)
         return v.astype(q.dtype), self.force(t, q, v, args).astype(p.dtype)
 
@@ -142,6 +178,21 @@ def _check_scalar(value, what: str, dtype) -> Array:
     return value
 
 
+def _check_constraint(value, q) -> Array:
+    shape, dtype = jnp.shape(value), jnp.result_type(value)
+    if len(shape) != 1 or not 1 <= shape[0] < jnp.shape(q)[0]:
+        raise ValueError(
+            "the constraint must return a 1-D array of M values, 1 <= M < D, for coordinates "
+            f"of shape {jnp.shape(q)} (D = {jnp.shape(q)[0]}); it returned shape {shape}"
+        )
+    if dtype != jnp.result_type(q):
+        raise ValueError(
+            f"the constraint returned dtype {dtype} for {jnp.result_type(q)} coordinates; keep "
+            "it in the working precision (no float64 constants, no integer arrays)"
+        )
+    return value
+
+
 def _check_force(value, q) -> Array:
     shape, dtype = jnp.shape(value), jnp.result_type(value)
     if shape != jnp.shape(q):
@@ -179,12 +230,20 @@ class LagrangianTerm(AbstractMechanicalTerm):
       force `∂L/∂q + F`, the variational steps through the same quadrature as the action,
       the explicit ones in Hamilton's equations `ṗ = ∂L/∂q + F`. `None` (default): a
       conservative system.
+    - `constraint`: optional holonomic constraints `g(t, q, args) -> (M,)`, `1 <= M < D`,
+      held at zero: the system moves on `g = 0` (a pendulum in Cartesian coordinates, a
+      chain of rigid links). `CGVI` steps it with one multiplier per constraint and node
+      (`diffrax_vi.holonomic`), keeping `g = 0` and its hidden velocity-level constraint
+      `G(q) v + ∂g/∂t = 0` at every step's end; the start must satisfy both. Explicit
+      solvers cannot honour constraints and stop with an error at run time. `None`
+      (default): free coordinates.
     """
 
     lagrangian: Callable
     velocity_map: Callable | None = None
     legendre_iterations: int = eqx.field(static=True, default=1)
     nonconservative_force: Callable | None = None
+    holonomic_constraint: Callable | None = None
 
     def __init__(
         self,
@@ -193,6 +252,7 @@ class LagrangianTerm(AbstractMechanicalTerm):
         *,
         legendre_iterations: int = 1,
         force: Callable | None = None,
+        constraint: Callable | None = None,
     ):
         if not callable(lagrangian):
             raise TypeError(f"lagrangian must be callable, got {type(lagrangian).__name__}")
@@ -200,6 +260,10 @@ class LagrangianTerm(AbstractMechanicalTerm):
             raise TypeError(f"velocity must be callable or None, got {type(velocity).__name__}")
         if force is not None and not callable(force):
             raise TypeError(f"force must be callable or None, got {type(force).__name__}")
+        if constraint is not None and not callable(constraint):
+            raise TypeError(
+                f"constraint must be callable or None, got {type(constraint).__name__}"
+            )
         if not isinstance(legendre_iterations, int) or legendre_iterations < 1:
             raise ValueError(
                 f"legendre_iterations must be a positive int, got {legendre_iterations!r}"
@@ -208,6 +272,7 @@ class LagrangianTerm(AbstractMechanicalTerm):
         self.velocity_map = velocity
         self.legendre_iterations = legendre_iterations
         self.nonconservative_force = force
+        self.holonomic_constraint = constraint
 
     def __call__(self, t, q, v, args) -> Array:
         """Evaluate `L(t, q, v, args)`, checking that it is a scalar of `q`'s dtype."""
@@ -225,6 +290,16 @@ class LagrangianTerm(AbstractMechanicalTerm):
         if self.nonconservative_force is None:
             return jnp.zeros_like(q)
         return _check_force(self.nonconservative_force(t, q, v, args), q)
+
+    @property
+    def has_constraints(self) -> bool:
+        return self.holonomic_constraint is not None
+
+    def constraint_values(self, t, q, args) -> Array:
+        """`g(t, q, args)`, checked to be a 1-D array of `M < D` values in `q`'s dtype."""
+        if self.holonomic_constraint is None:
+            raise ValueError("this LagrangianTerm was built without a constraint=g(t, q, args)")
+        return _check_constraint(self.holonomic_constraint(t, q, args), q)
 
     def velocity(self, t, q, p, args):
         """Inverse Legendre map `p ↦ v`: closed form if given, else Newton from `v = 0`."""

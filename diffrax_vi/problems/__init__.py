@@ -23,6 +23,10 @@ from .modulated_oscillator import modulated_oscillator as modulated_oscillator
 from .outer_solar_system import outer_solar_system as outer_solar_system
 from .pendulum import pendulum as pendulum
 from .perturbed_pendulum import perturbed_pendulum as perturbed_pendulum
+from .rigid_chain import JointDamping as JointDamping
+from .rigid_chain import chain_angles_to_state as chain_angles_to_state
+from .rigid_chain import rigid_chain as rigid_chain
+from .spherical_pendulum import spherical_pendulum as spherical_pendulum
 from .stored import StoredFlow as StoredFlow
 from .toda_lattice import toda_lattice as toda_lattice
 
@@ -43,6 +47,10 @@ __all__ = [
     "outer_solar_system",
     "pendulum",
     "perturbed_pendulum",
+    "rigid_chain",
+    "JointDamping",
+    "chain_angles_to_state",
+    "spherical_pendulum",
     "solve_kepler_equation",
     "toda_lattice",
 ]
