@@ -33,10 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .ansatz.polynomial import lobatto_points
+from .ansatz.polynomial import LagrangeBasis, lobatto_points
+from .formulation import StepContext, node_momenta_and_forces, stage_values
+from .lagrange import lagrange_weights
 from .results import STEP_FAILURES
 
-__all__ = ["ConstrainedStep", "constrained_step", "lobatto_rule"]
+__all__ = [
+    "ConstrainedStep", "check_constrained_solver", "constrained_step", "curve_and_forces",
+    "drift", "lobatto_rule",
+]
 
 # Multiples of the working precision: where the solve stops (the last update this small
 # relative to the unknowns' size), and how far a start may sit off the constraint (square
@@ -92,6 +97,7 @@ class ConstrainedStep(NamedTuple):
       `vi_step_nonfinite`).
     - `drift`: `(2,)`, `max |g(t_{n+1}, q_{n+1})|` and `max |G v + ∂g/∂t|` at the step's end.
     - `residual`: the size of the last Newton update relative to the unknowns.
+    - `tolerance`: where the solve stops (that size at a few ulps).
     """
 
     values: Array
@@ -101,6 +107,7 @@ class ConstrainedStep(NamedTuple):
     result: diffrax.RESULTS
     drift: Array
     residual: Array
+    tolerance: Array
 
 
 def _rule(degree: int, dtype):
@@ -211,6 +218,21 @@ def drift(term, t, q, p, args) -> Array:
     return jnp.stack([position, velocity])
 
 
+def check_constrained_solver(basis, error_estimate) -> None:
+    """Refuse, by name, what the constrained step cannot do: a basis other than the
+    polynomial one, and the companion error estimate."""
+    if not isinstance(basis, LagrangeBasis):
+        raise ValueError(
+            "holonomic constraints are stepped by the polynomial step: use "
+            f"diffrax_vi.CGVI(degree) (a LagrangeBasis), not a {type(basis).__name__}"
+        )
+    if error_estimate is not None:
+        raise ValueError(
+            "error_estimate is not available with holonomic constraints: use constant steps "
+            "(the constrained step has no companion estimate)"
+        )
+
+
 def constrained_step(term, degree: int, t, h, q0, p0, args, max_steps: int) -> ConstrainedStep:
     """One constrained step of degree `degree` from `(q0, p0)` at time `t` over `h`.
 
@@ -262,4 +284,29 @@ def constrained_step(term, degree: int, t, h, q0, p0, args, max_steps: int) -> C
         unmet & finite, STEP_FAILURES["vi_constraint_unmet"], result
     )
     return ConstrainedStep(values, impulses, p1, iterations, result,
-                           jax.lax.stop_gradient(end_drift), size)
+                           jax.lax.stop_gradient(end_drift), size, jnp.asarray(_STOP * eps))
+
+
+def curve_and_forces(solved: ConstrainedStep, basis: LagrangeBasis, ctx: StepContext
+                     ) -> tuple[Array, Array]:
+    """`(theta, forces)` for the dense output of a constrained step: the curve in the
+    basis's own parameters (its values at the basis's points), and the forces at the
+    quadrature nodes, the system's less the constraint's reaction `Gᵀλ` (the multipliers
+    interpolated between the Lobatto points)."""
+    dtype = ctx.q0.dtype
+    degree = basis.degree
+    lobatto = lobatto_points(degree)
+    to_basis = jnp.stack([
+        lagrange_weights(lobatto, jnp.asarray(x, dtype)) for x in basis.control_points
+    ])
+    theta = to_basis @ solved.values
+    q_nodes, dq_nodes = stage_values(lambda tau: basis.evaluate(theta, tau), ctx.nodes)
+    _, forces = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
+    _, weights, _ = lobatto_rule(degree)
+    multipliers = solved.impulses / (ctx.h * jnp.asarray(weights, dtype))[:, None]
+    at_nodes = jax.vmap(lambda c: lagrange_weights(lobatto, c))(ctx.nodes) @ multipliers
+    times = ctx.t + ctx.nodes * ctx.h
+    gradients = jax.vmap(ctx.term.constraint_jacobian, in_axes=(0, 0, None))(
+        times, q_nodes, ctx.args
+    )
+    return theta, forces - jnp.einsum("imd,im->id", gradients, at_nodes)

@@ -14,7 +14,6 @@ import optimistix as optx
 from jaxtyping import Array
 
 from .ansatz.base import AbstractBasis
-from .ansatz.polynomial import LagrangeBasis, lobatto_points
 from .ansatz.shallow import ShallowNetBasis
 from .degenerate import (
     CONSTRAINT_GROWTH,
@@ -30,9 +29,8 @@ from .formulation import (
     stage_values,
 )
 from .hidden_layers import UniformLayer
-from .holonomic import constrained_step, lobatto_rule
+from .holonomic import check_constrained_solver, constrained_step, curve_and_forces
 from .interpolation import NetworkInterpolation
-from .lagrange import lagrange_weights
 from .lazy import unless_all_skip
 from .picard import (
     extrapolation,
@@ -403,55 +401,18 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
 
     def _constrained_step(self, ctx, state, made_jump):
-        """The step of a term with holonomic constraints (`diffrax_vi.holonomic`): the
-        polynomial of the basis's degree through values at the Lobatto points, one
-        multiplier per constraint and point, the end momentum on the hidden constraint."""
-        if not isinstance(self.basis, LagrangeBasis):
-            raise ValueError(
-                "holonomic constraints are stepped by the polynomial step: use "
-                f"diffrax_vi.CGVI(degree) (a LagrangeBasis), not a {type(self.basis).__name__}"
-            )
-        if self.error_estimate is not None:
-            raise ValueError(
-                "error_estimate is not available with holonomic constraints: use constant "
-                "steps (the constrained step has no companion estimate yet)"
-            )
-        degree = self.basis.degree
-        solved = constrained_step(ctx.term, degree, ctx.t, ctx.h, ctx.q0, ctx.p0, ctx.args,
-                                  self.root_find_max_steps)
-        dtype = ctx.q0.dtype
-        lobatto = lobatto_points(degree)
-        # the curve in the basis's own parameters: its values at the basis's points
-        to_basis = jnp.stack([
-            lagrange_weights(lobatto, jnp.asarray(x, dtype)) for x in self.basis.control_points
-        ])
-        theta = to_basis @ solved.values
-        q1, p1 = solved.values[-1], solved.p1
-
-        # The forces at the quadrature nodes for the dense momentum: the system's, less the
-        # constraint's reaction `Gᵀλ` with the multipliers interpolated between the points.
-        def curve(tau):
-            return self.basis.evaluate(theta, tau)
-
-        q_nodes, dq_nodes = stage_values(curve, ctx.nodes)
-        _, forces = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
-        _, weights, _ = lobatto_rule(degree)
-        multipliers = solved.impulses / (ctx.h * jnp.asarray(weights, dtype))[:, None]
-        at_nodes = jax.vmap(lambda c: lagrange_weights(lobatto, c))(ctx.nodes) @ multipliers
-        times = ctx.t + ctx.nodes * ctx.h
-        gradients = jax.vmap(ctx.term.constraint_jacobian, in_axes=(0, 0, None))(
-            times, q_nodes, ctx.args
-        )
-        forces = forces - jnp.einsum("imd,im->id", gradients, at_nodes)
-
+        """The step of a term with holonomic constraints: the constrained Galerkin step of
+        the basis's degree with multipliers (`diffrax_vi.holonomic`)."""
+        check_constrained_solver(self.basis, self.error_estimate)
+        solved = constrained_step(ctx.term, self.basis.degree, ctx.t, ctx.h, ctx.q0, ctx.p0,
+                                  ctx.args, self.root_find_max_steps)
+        theta, forces = curve_and_forces(solved, self.basis, ctx)
         record = self.seeder.after_jump(state.seed, made_jump)
-        no = jnp.array(False)
-        eps = float(jnp.finfo(dtype).eps)
-        tolerance = jnp.asarray(8 * eps, dtype)
+        no, dtype = jnp.array(False), ctx.q0.dtype
         (q1, p1), y_error, dense_info, new_state, result = self._finish_step(
-            ctx, state, record, Seed(None, no, no), theta, q1, p1, solved.iterations,
-            solved.result, solved.residual.astype(dtype), tolerance, no, state.compensation,
-            jnp.zeros((), dtype), forces,
+            ctx, state, record, Seed(None, no, no), theta, solved.values[-1], solved.p1,
+            solved.iterations, solved.result, solved.residual.astype(dtype),
+            solved.tolerance.astype(dtype), no, state.compensation, jnp.zeros((), dtype), forces,
         )
         drift = jnp.maximum(state.holonomic_drift, solved.drift.astype(dtype))
         new_state = eqx.tree_at(lambda s: s.holonomic_drift, new_state, drift)
