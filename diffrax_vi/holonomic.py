@@ -36,11 +36,13 @@ from jaxtyping import Array
 from .ansatz.polynomial import LagrangeBasis, lobatto_points
 from .formulation import StepContext, node_momenta_and_forces, stage_values
 from .lagrange import lagrange_weights
+from .lazy import unless_all_skip
+from .linalg import dense_tangent_solve
 from .results import STEP_FAILURES
 
 __all__ = [
-    "ConstrainedStep", "check_constrained_solver", "constrained_step", "curve_and_forces",
-    "drift", "lobatto_rule",
+    "ConstrainedStep", "PreviousStep", "check_constrained_solver", "constrained_step",
+    "curve_and_forces", "drift", "lobatto_rule", "no_previous_step",
 ]
 
 # Multiples of the working precision: where the solve stops (the last update this small
@@ -91,7 +93,8 @@ class ConstrainedStep(NamedTuple):
     - `values`: `(s + 1, D)`, the curve's values at the Lobatto points (`values[-1]` is
       `q_{n+1}`).
     - `impulses`: `(s + 1, M)`, the constraint impulses `μ_i = h b_i Λ_i` at the points.
-    - `p1`: the end momentum, on the hidden constraint.
+    - `dq`, `dp`: the step's increments `q_{n+1} − q_n` and `p_{n+1} − p_n` (the end
+      momentum on the hidden constraint), each rounded at its own size.
     - `iterations`: Newton iterations of the step's solve.
     - `result`: `successful` or the failure (`vi_constraint_unmet`, `vi_step_max_iterations`,
       `vi_step_nonfinite`).
@@ -102,7 +105,8 @@ class ConstrainedStep(NamedTuple):
 
     values: Array
     impulses: Array
-    p1: Array
+    dq: Array
+    dp: Array
     iterations: Array
     result: diffrax.RESULTS
     drift: Array
@@ -116,30 +120,31 @@ def _rule(degree: int, dtype):
 
 
 def _equations(term, degree, t, h, q0, p0, args):
-    """The residual of the step's unknowns `(Q_2..Q_{s+1}, μ_1..μ_s)`, and the map from a
-    solution to `(values, p̃_{n+1})` (the end momentum before its last impulse)."""
+    """The residual of the step's unknowns `(Q_2 − q_n, ..., Q_{s+1} − q_n; μ_1..μ_s)`, and
+    the map from them to `(values, ∂S/∂Q without the constraint, forces)`."""
     tau, b, d = _rule(degree, q0.dtype)
     times = t + tau * h
     jacobian = jax.vmap(term.constraint_jacobian, in_axes=(0, 0, None))
 
     def momenta(z):
-        inner, impulses = z
-        values = jnp.concatenate([q0[None], inner])
-        velocities = (d @ values) / h
+        increments, impulses = z
+        # the values as the start plus increments; the velocities from the increments alone
+        # (the rows of D sum to zero only up to rounding, which would scale with |q_n|)
+        values = jnp.concatenate([q0[None], q0 + increments])
+        velocities = (d[:, 1:] @ increments) / h
         p, f = jax.vmap(term.momentum_and_force, in_axes=(0, 0, 0, None))(
             times, values, velocities, args
         )
         # ∂S/∂Q_j without the constraint: h b_j f_j + Σ_i b_i D_ij p_i
         sums = d.T @ (b[:, None] * p) + (h * b)[:, None] * f
-        return values, sums
+        return values, sums, f
 
     def residual(z):
-        inner, impulses = z
-        values, sums = momenta(z)
+        values, sums, _ = momenta(z)
         g = jacobian(times[:-1], values[:-1], args)
-        reaction = jnp.einsum("imd,im->id", g, impulses)
+        reaction = jnp.einsum("imd,im->id", g, z[1])
         balance = (sums[:-1] - reaction).at[0].add(p0)
-        on = jax.vmap(term.constraint_values, in_axes=(0, 0, None))(times[1:], inner, args)
+        on = jax.vmap(term.constraint_values, in_axes=(0, 0, None))(times[1:], values[1:], args)
         return balance, on
 
     return residual, momenta
@@ -155,8 +160,10 @@ def _unflat(x, like):
 
 
 def _newton(residual, start, scale, max_steps):
-    """Newton's iteration on `residual` from `start` until its update stops falling at
-    round-off: `(z, iterations, converged, finite, last relative update)`."""
+    """The chord iteration on `residual` from `start`, with the Jacobian formed again
+    (Newton's update) wherever an update did not shrink the last one fourfold, until the
+    update stops falling at round-off: `(z, iterations, converged, finite, last relative
+    update)`. Under `vmap` a Jacobian is formed only while some member needs one."""
     eps = float(jnp.finfo(start[0].dtype).eps)
 
     def relative(dz, z):
@@ -165,38 +172,40 @@ def _newton(residual, start, scale, max_steps):
                                                                            initial=0.0))
         return jnp.maximum(size_q, size_mu)
 
-    def update(z):
-        x = _flat(z)
-        r = _flat(residual(z))
-        matrix = jax.jacfwd(lambda y: _flat(residual(_unflat(y, z))))(x)
-        return _unflat(-jnp.linalg.solve(matrix, r), z)
+    def factor(z):
+        matrix = jax.jacfwd(lambda y: _flat(residual(_unflat(y, z))))(_flat(z))
+        return jax.scipy.linalg.lu_factor(matrix)
 
     def cond(carry):
-        z, k, size, previous, done = carry
+        z, lu, fresh, k, size, done = carry
         return ~done & (k < max_steps)
 
     def body(carry):
-        z, k, _, previous, _ = carry
-        dz = update(z)
+        z, lu, fresh, k, previous, _ = carry
+        dz = _unflat(-jax.scipy.linalg.lu_solve(lu, _flat(residual(z))), z)
         z = jax.tree_util.tree_map(jnp.add, z, dz)
         size = relative(dz, z)
-        # At round-off the update stops halving: stop there, or once it is a few ulps.
-        done = (size <= _STOP * eps) | ((size >= previous / 2) & (size <= eps ** 0.5))
+        # At round-off Newton's update stops halving: stop there (a chord update that does
+        # not halve is only slow, and the Jacobian is formed again), or at a few ulps.
+        done = (size <= _STOP * eps) | (fresh & (size >= previous / 2) & (size <= eps ** 0.5))
         done = done | ~jnp.isfinite(size)
-        return z, k + 1, size, size, done
+        slow = ~done & (size > previous / 4)
+        lu = unless_all_skip(slow, lambda: factor(z), lu)
+        return z, lu, slow, k + 1, size, done
 
     inf = jnp.asarray(jnp.inf, start[0].dtype)
-    z, k, size, _, done = jax.lax.while_loop(
-        cond, body, (start, jnp.array(0, jnp.int32), inf, inf, jnp.array(False))
+    yes = jnp.array(True)
+    z, _, _, k, size, done = jax.lax.while_loop(
+        cond, body, (start, factor(start), yes, jnp.array(0, jnp.int32), inf, ~yes)
     )
     finite = jnp.isfinite(size)
     return z, k, done & finite, finite, size
 
 
-def _hidden(term, t1, q1, p_end, args):
+def _hidden(term, t1, q1, p_end, args, g):
     """The impulse `μ` that puts `p_end − Gᵀμ` on the hidden constraint `G v + ∂g/∂t = 0`
-    (Newton from zero; exact after one update where the velocity is linear in `p`)."""
-    g = term.constraint_jacobian(t1, q1, args)
+    (`G` the constraint's Jacobian at `q1`; Newton from zero, exact after one update where
+    the velocity is linear in `p`)."""
     rate = term.constraint_rate(t1, q1, args)
 
     def hidden(mu):
@@ -205,7 +214,7 @@ def _hidden(term, t1, q1, p_end, args):
     mu = jnp.zeros(g.shape[0], q1.dtype)
     for _ in range(_HIDDEN_ITERATIONS):
         mu = mu - jnp.linalg.solve(jax.jacfwd(hidden)(mu), hidden(mu))
-    return mu, g
+    return mu
 
 
 def drift(term, t, q, p, args) -> Array:
@@ -233,41 +242,76 @@ def check_constrained_solver(basis, error_estimate) -> None:
         )
 
 
-def constrained_step(term, degree: int, t, h, q0, p0, args, max_steps: int) -> ConstrainedStep:
+class PreviousStep(NamedTuple):
+    """What the next constrained step starts from: the last step's values and impulses at
+    the Lobatto points, its length, and whether there is one (not before the first step,
+    nor after a jump of the state)."""
+
+    values: Array
+    impulses: Array
+    h: Array
+    valid: Array
+
+
+def no_previous_step(term, degree: int, t, q0, args) -> PreviousStep:
+    """The `PreviousStep` before the first step."""
+    m = term.constraint_values(t, q0, args).shape[0]
+    zeros = jnp.zeros((degree + 1, m), q0.dtype)
+    return PreviousStep(jnp.zeros((degree + 1, q0.shape[0]), q0.dtype), zeros,
+                        jnp.ones((), q0.dtype), jnp.array(False))
+
+
+def _start(term, degree, t, h, q0, p0, args, previous: PreviousStep):
+    """The solve's start: the last step's curve and multipliers continued into this step
+    (values of the same polynomials at the new points), or, without a last step, the
+    straight line of the start's velocity with zero impulses; values as increments."""
+    tau, b, _ = _rule(degree, q0.dtype)
+    points = lobatto_points(degree)
+    line = (tau[1:, None] * h) * term.velocity(t, q0, p0, args)
+    zero = jnp.zeros(previous.impulses[:-1].shape, q0.dtype)
+    _, weights, _ = _rule(degree, q0.dtype)
+    continued = jax.vmap(lambda x: lagrange_weights(points, x))(1 + (h / previous.h) * tau)
+    values = continued[1:] @ previous.values - q0
+    multipliers = continued[:-1] @ (previous.impulses / (previous.h * weights)[:, None])
+    impulses = (h * weights[:-1])[:, None] * multipliers
+    ok = previous.valid & (h != 0) & (previous.h != 0)
+    return jnp.where(ok, values, line), jnp.where(ok, impulses, zero)
+
+
+def constrained_step(term, degree: int, t, h, q0, p0, args, max_steps: int,
+                     previous: PreviousStep) -> ConstrainedStep:
     """One constrained step of degree `degree` from `(q0, p0)` at time `t` over `h`.
 
-    The solve starts from the straight line of the start's velocity with zero impulses, runs
-    on values without derivatives, and the step's derivatives are those of its root
-    (implicit differentiation of the step's equations)."""
+    The solve starts from the previous step continued (`_start`), runs on values without
+    derivatives, and the step's derivatives are those of its root (implicit
+    differentiation of the step's equations)."""
     dtype = q0.dtype
     eps = float(jnp.finfo(dtype).eps)
-    tau, b, _ = _rule(degree, dtype)
-    m = term.constraint_values(t, q0, args).shape[0]
     scale = 1 + jnp.max(jnp.abs(p0))
 
     frozen = jax.tree_util.tree_map(
-        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, (t, h, q0, p0, args)
+        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x,
+        (t, h, q0, p0, args, previous),
     )
-    residual_frozen, _ = _equations(term, degree, *frozen)
-    v0 = term.velocity(frozen[0], frozen[2], frozen[3], frozen[4])
-    start = (frozen[2] + (tau[1:, None] * frozen[1]) * v0, jnp.zeros((degree, m), dtype))
+    residual_frozen, _ = _equations(term, degree, *frozen[:5])
+    start = _start(term, degree, *frozen)
     found, iterations, converged, finite, size = _newton(
         residual_frozen, start, jax.lax.stop_gradient(scale), max_steps
     )
 
     residual, momenta = _equations(term, degree, t, h, q0, p0, args)
-
-    def tangent_solve(linear, rhs):
-        flat_rhs = _flat(rhs)
-        matrix = jax.jacfwd(lambda y: _flat(linear(_unflat(y, rhs))))(jnp.zeros_like(flat_rhs))
-        return _unflat(jnp.linalg.solve(matrix, flat_rhs), rhs)
-
-    z = jax.lax.custom_root(residual, found, lambda _, __: found, tangent_solve)
-    values, sums = momenta(z)
+    z = jax.lax.custom_root(residual, found, lambda _, __: found, dense_tangent_solve)
+    values, _, forces = momenta(z)
+    tau, b, _ = _rule(degree, dtype)
+    g = jax.vmap(term.constraint_jacobian, in_axes=(0, 0, None))(t + tau * h, values, args)
+    # The momentum's change as the impulses of the step (the forces by the rule, the
+    # constraint's reactions): at the root it is `∂S/∂Q_{s+1} − p_n`, rounded at its own size.
+    dp_free = h * (b @ forces) - jnp.einsum("imd,im->d", g[:-1], z[1])
     t1 = t + h
     q1 = values[-1]
-    mu_end, _ = _hidden(term, t1, q1, sums[-1], args)
-    p1 = sums[-1] - term.constraint_jacobian(t1, q1, args).T @ mu_end
+    mu_end = _hidden(term, t1, q1, p0 + dp_free, args, g[-1])
+    dp = dp_free - g[-1].T @ mu_end
+    p1 = p0 + dp
     impulses = jnp.concatenate([z[1], mu_end[None]])
 
     start_drift = drift(term, t, q0, p0, args)
@@ -283,7 +327,7 @@ def constrained_step(term, degree: int, t, h, q0, p0, args, max_steps: int) -> C
     result = diffrax.RESULTS.where(
         unmet & finite, STEP_FAILURES["vi_constraint_unmet"], result
     )
-    return ConstrainedStep(values, impulses, p1, iterations, result,
+    return ConstrainedStep(values, impulses, z[0][-1], dp, iterations, result,
                            jax.lax.stop_gradient(end_drift), size, jnp.asarray(_STOP * eps))
 
 

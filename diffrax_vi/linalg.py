@@ -14,7 +14,8 @@ from jaxtyping import Array
 
 from .precision import lapack_dtype
 
-__all__ = ["solve", "damped_least_squares", "unpivoted_inverse"]
+__all__ = ["solve", "damped_least_squares", "dense_tangent_solve", "unpivoted_inverse",
+           "well_conditioned"]
 
 
 def solve(matrix: Array, rhs: Array) -> Array:
@@ -22,6 +23,17 @@ def solve(matrix: Array, rhs: Array) -> Array:
     dtype = jnp.result_type(rhs)
     work = lapack_dtype(dtype)
     return jnp.linalg.solve(matrix.astype(work), rhs.astype(work)).astype(dtype)
+
+
+def dense_tangent_solve(linear, rhs):
+    """`x` with `linear(x) = rhs` (pytrees of one structure), by a dense factorisation of the
+    linear map: the `tangent_solve` of `jax.lax.custom_root` for a step's equations at their
+    root (formed only where a derivative is taken)."""
+    from jax.flatten_util import ravel_pytree
+
+    flat, unravel = ravel_pytree(rhs)
+    matrix = jax.jacfwd(lambda v: ravel_pytree(linear(unravel(v)))[0])(jnp.zeros_like(flat))
+    return unravel(jnp.linalg.solve(matrix, flat))
 
 
 def damped_least_squares(matrix: Array, rhs: Array, sqrt_mu: Array) -> Array:
@@ -136,3 +148,9 @@ def _gauss_jordan_members(axis_size, in_batched, a):
         return jnp.where(outside, a, 0) - multipliers[:, None, :] * pivot_row[None, :, :]
 
     return jnp.moveaxis(jax.lax.fori_loop(0, n, eliminate, a), -1, 0), True
+
+
+def well_conditioned(matrix) -> bool:
+    """Whether a matrix known when the step is traced is invertible well within float64
+    (condition number below 1e12): e.g. a regular Lagrangian's constant kinetic matrix."""
+    return bool(np.linalg.cond(np.asarray(matrix)) < 1e12)

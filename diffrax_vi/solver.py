@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import diffrax
 import equinox as eqx
@@ -11,7 +11,6 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array
 
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
@@ -29,9 +28,16 @@ from .formulation import (
     stage_values,
 )
 from .hidden_layers import UniformLayer
-from .holonomic import check_constrained_solver, constrained_step, curve_and_forces
+from .holonomic import (
+    PreviousStep,
+    check_constrained_solver,
+    constrained_step,
+    curve_and_forces,
+    no_previous_step,
+)
 from .interpolation import NetworkInterpolation
 from .lazy import unless_all_skip
+from .linalg import dense_tangent_solve, well_conditioned
 from .picard import (
     extrapolation,
     kinetic_structure,
@@ -53,6 +59,7 @@ from .solver_options import check_options
 from .solver_state import NetworkVIState
 from .step_solve import companion_error, solve_all, solve_projected, with_known_span
 from .terms import AbstractMechanicalTerm, unwrap_term
+from .validation import check_state, check_times, refuse_nonfinite_times
 
 __all__ = ["NetworkVI", "NetworkVIState"]
 
@@ -190,7 +197,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """What one step from `t0` to `t1` works with: the term, the ansatz placed on the
         step, the start, the quadrature in the state's dtype."""
         term, direction = unwrap_term(terms)
-        q0, p0 = _check_state(y0)
+        q0, p0 = check_state(y0)
         dtype = q0.dtype
         self.basis.check(dtype)
         with jax.ensure_compile_time_eval():  # constants of the compiled step, not traced
@@ -207,8 +214,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
-        from .validation import check_times, refuse_nonfinite_times
-
         # Concrete times (manual stepping) are refused at trace time. Inside `diffeqsolve` they
         # are traced by now and are checked when the program runs: a NaN time would make
         # diffrax take no step and report success. The checked `t0` reaches `report.t`, which
@@ -219,6 +224,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         seed = self.seeder.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
         node_values = (jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2
+        if ctx.term.has_constraints:
+            check_constrained_solver(self.basis, self.error_estimate)
         engine = None if ctx.term.has_constraints else self._picard_engine(ctx)
         if engine is not None:  # the first step continues the curve at rest
             node_values = start_at_rest(engine[1], ctx)
@@ -246,6 +253,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
             node_values=node_values,
             holonomic_drift=jnp.zeros(2, ctx.q0.dtype),
+            holonomic_previous=(
+                no_previous_step(ctx.term, self.basis.degree, ctx.t, ctx.q0, ctx.args)
+                if ctx.term.has_constraints else None
+            ),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -321,7 +332,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         structure = kinetic_structure(ctx.term, ctx.t, ctx.q0, ctx.args)
         if structure is None or not structure.mass_constant:
             return None
-        if structure.mass is not None and not _invertible(structure.mass):
+        if structure.mass is not None and not well_conditioned(structure.mass):
             return None
         return plan, structure, span
 
@@ -387,7 +398,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         found, (values, n, result, residual_size, restarted) = solve(*frozen)
         # The step's derivatives are those of its root (implicit differentiation of the
         # step's equations), not of the iteration that found it.
-        z = jax.lax.custom_root(residual, found, lambda _, __: found, _dense_tangent_solve)
+        z = jax.lax.custom_root(residual, found, lambda _, __: found, dense_tangent_solve)
         residual = residual_size
         theta = form.expand(form.coefficients(z[0], ctx), span)
         dq, dp = form.projected_increments(z, span, ctx)
@@ -403,19 +414,25 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     def _constrained_step(self, ctx, state, made_jump):
         """The step of a term with holonomic constraints: the constrained Galerkin step of
         the basis's degree with multipliers (`diffrax_vi.holonomic`)."""
-        check_constrained_solver(self.basis, self.error_estimate)
+        previous = state.holonomic_previous
+        if made_jump is not False:  # after a jump of the state, from the straight line again
+            previous = previous._replace(valid=previous.valid & ~made_jump)
         solved = constrained_step(ctx.term, self.basis.degree, ctx.t, ctx.h, ctx.q0, ctx.p0,
-                                  ctx.args, self.root_find_max_steps)
+                                  ctx.args, self.root_find_max_steps, previous)
         theta, forces = curve_and_forces(solved, self.basis, ctx)
+        q1, p1, compensation, _ = self._end_state(ctx, state, solved.dq, solved.dp, False)
         record = self.seeder.after_jump(state.seed, made_jump)
         no, dtype = jnp.array(False), ctx.q0.dtype
         (q1, p1), y_error, dense_info, new_state, result = self._finish_step(
-            ctx, state, record, Seed(None, no, no), theta, solved.values[-1], solved.p1,
-            solved.iterations, solved.result, solved.residual.astype(dtype),
-            solved.tolerance.astype(dtype), no, state.compensation, jnp.zeros((), dtype), forces,
+            ctx, state, record, Seed(None, no, no), theta, q1, p1, solved.iterations,
+            solved.result, solved.residual.astype(dtype), solved.tolerance.astype(dtype), no,
+            compensation, jnp.zeros((), dtype), forces,
         )
         drift = jnp.maximum(state.holonomic_drift, solved.drift.astype(dtype))
-        new_state = eqx.tree_at(lambda s: s.holonomic_drift, new_state, drift)
+        ok = result == diffrax.RESULTS.successful
+        last = PreviousStep(solved.values, solved.impulses, ctx.h, ok)
+        new_state = eqx.tree_at(lambda s: (s.holonomic_drift, s.holonomic_previous), new_state,
+                                (drift, jax.lax.stop_gradient(last)))
         return (q1, p1), y_error, dense_info, new_state, result
 
     def _end_state(self, ctx, state, dq, dp, on_constraint: bool):
@@ -543,6 +560,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             ),
             node_values=state.node_values if node_values is None else node_values,
             holonomic_drift=state.holonomic_drift,
+            holonomic_previous=state.holonomic_previous,
         )
         y_error = None
         if self.error_estimate is not None:
@@ -551,11 +569,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return (q1, p1), y_error, dense_info, new_state, result
 
     def func(self, terms, t0, y0, args):
+        # Hamilton's equations without constraints: diffrax reads their size for `dt0`.
         term, direction = unwrap_term(terms)
-        if term.has_constraints:  # the unconstrained field: only its size is read
-            v, f = term.hamilton_vf(direction * t0, y0, args)
-            return direction * v, direction * f
-        return terms.vf(t0, y0, args)
+        return term.hamilton_vf(direction * t0, check_state(y0), args)
 
 
 @functools.cache
@@ -573,28 +589,3 @@ def _interpolation_factory(
     return functools.partial(
         NetworkInterpolation, basis=basis, formulation=formulation, nodes=nodes
     )
-
-
-def _dense_tangent_solve(linear, rhs):
-    """`x` with `linear(x) = rhs`, by a dense factorisation of the linear map (the step's
-    Jacobian at its root; formed only where a derivative is taken)."""
-    from jax.flatten_util import ravel_pytree
-
-    flat, unravel = ravel_pytree(rhs)
-    matrix = jax.jacfwd(lambda v: ravel_pytree(linear(unravel(v)))[0])(jnp.zeros_like(flat))
-    return unravel(jnp.linalg.solve(matrix, flat))
-
-
-def _invertible(matrix) -> bool:
-    """Whether a kinetic matrix known when the step is traced is invertible (well within
-    float64: a regular Lagrangian)."""
-    import numpy as np
-
-    return bool(np.linalg.cond(matrix) < 1e12)
-
-
-def _check_state(y0: Any) -> tuple[Array, Array]:
-    """`(q0, p0)` of a valid state; the one check shared with the terms' `vf`."""
-    from .validation import check_state  # imported here: this function is its only user
-
-    return check_state(y0)

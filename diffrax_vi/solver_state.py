@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 from jaxtyping import Array, PyTree
 
@@ -49,6 +51,9 @@ class NetworkVIState(eqx.Module):
     - `holonomic_drift`: `(2,)`, for a term with holonomic constraints the largest
       `|g(t, q)|` and `|G(q) v + ∂g/∂t|` at the ends of the steps so far (position and
       velocity level); zeros without constraints.
+    - `holonomic_previous`: for a term with holonomic constraints, the last step's curve and
+      impulses (`diffrax_vi.holonomic.PreviousStep`), from which the next step's solve
+      starts; `None` without constraints.
     """
 
     seed: SeedRecord
@@ -66,6 +71,7 @@ class NetworkVIState(eqx.Module):
     compensation: tuple[Array, Array]
     node_values: tuple[Array, Array]
     holonomic_drift: Array
+    holonomic_previous: Any
 
     @property
     def theta(self) -> PyTree:
