@@ -37,7 +37,8 @@ from .ansatz.polynomial import LagrangeBasis, lobatto_points
 from .formulation import StepContext, node_momenta_and_forces, stage_values
 from .lagrange import lagrange_weights
 from .lazy import unless_all_skip
-from .linalg import dense_tangent_solve
+from .linalg import dense_tangent_solve, solve
+from .precision import lapack_dtype
 from .results import STEP_FAILURES
 
 __all__ = [
@@ -172,9 +173,12 @@ def _newton(residual, start, scale, max_steps):
                                                                            initial=0.0))
         return jnp.maximum(size_q, size_mu)
 
+    dtype = start[0].dtype
+    work = lapack_dtype(dtype)  # LAPACK has no half precision: factorise in float32 there
+
     def factor(z):
         matrix = jax.jacfwd(lambda y: _flat(residual(_unflat(y, z))))(_flat(z))
-        return jax.scipy.linalg.lu_factor(matrix)
+        return jax.scipy.linalg.lu_factor(matrix.astype(work))
 
     def cond(carry):
         z, lu, fresh, k, size, done = carry
@@ -182,7 +186,8 @@ def _newton(residual, start, scale, max_steps):
 
     def body(carry):
         z, lu, fresh, k, previous, _ = carry
-        dz = _unflat(-jax.scipy.linalg.lu_solve(lu, _flat(residual(z))), z)
+        dz = -jax.scipy.linalg.lu_solve(lu, _flat(residual(z)).astype(work)).astype(dtype)
+        dz = _unflat(dz, z)
         z = jax.tree_util.tree_map(jnp.add, z, dz)
         size = relative(dz, z)
         # At round-off Newton's update stops halving: stop there (a chord update that does
@@ -213,7 +218,7 @@ def _hidden(term, t1, q1, p_end, args, g):
 
     mu = jnp.zeros(g.shape[0], q1.dtype)
     for _ in range(_HIDDEN_ITERATIONS):
-        mu = mu - jnp.linalg.solve(jax.jacfwd(hidden)(mu), hidden(mu))
+        mu = mu - solve(jax.jacfwd(hidden)(mu), hidden(mu))
     return mu
 
 

@@ -90,6 +90,21 @@ def test_the_dense_output_follows_the_constrained_motion():
     assert np.max(np.abs(np.asarray(p) - p_ref)) < 1e-6
 
 
+@pytest.mark.parametrize("dtype, error, drift", [(jnp.float32, 1e-5, 1e-6),
+                                                 (jnp.float16, 1e-2, 1e-2)])
+def test_the_constrained_step_runs_in_low_precision(dtype, error, drift):
+    # float16 factorises in float32 (LAPACK has no half precision) and stays float16 outside
+    problem = problems.spherical_pendulum(dtype=dtype)
+    sol = diffrax.diffeqsolve(
+        problem.term, dvi.CGVI(3), dtype(0.0), dtype(2.0), dtype(0.1), problem.y0,
+        saveat=diffrax.SaveAt(t1=True, solver_state=True),
+    )
+    assert sol.ys[0].dtype == dtype and sol.ys[1].dtype == dtype
+    q_ref, _ = problem.reference(np.array([2.0]))
+    assert np.max(np.abs(np.asarray(sol.ys[0][-1], np.float64) - q_ref[0])) < error
+    assert np.all(np.asarray(sol.solver_state.holonomic_drift, np.float64) < drift)
+
+
 def test_the_damped_chain_matches_its_angle_reference_and_loses_energy():
     problem = problems.rigid_chain(n_links=5, damping=0.05)
     t1, n = 2.0, 80
