@@ -14,6 +14,10 @@ steps, alone and per member-step of a `vmap` over `--members` orbits (e in [0.1,
   fixed-point updates (`--floor-updates`) and `lax.scan` over the steps (cost only: its
   error is not comparable).
 
+Each row also counts the kernels one step launches (`kernels_per_run`: XLA's CPU runtime
+runs a compiled program as a sequence of kernels, each with a fixed cost of its own; the count
+is read from a profile of one run and does not depend on the machine's load).
+
 Then the first call of a fresh process (trace, compile and one run; no persistent
 compilation cache) of `CGVI(6)` (its default and the engine) and `NetworkVI` against
 `diffrax.Dopri8`'s on the same problem, double pendulum and Kepler, 10 steps each: `--fresh`
@@ -45,6 +49,32 @@ def _timed(fn, *args, repeats: int) -> float:
         jax.block_until_ready(fn(*args))
         best = min(best, time.perf_counter() - start)
     return best
+
+
+def kernels_per_run(fn, *args) -> tuple[int, int]:
+    """`(kernels, executor calls)` of one run of the compiled `fn`, counted in a profile of
+    the run: what XLA's CPU runtime launches (its thunks), a figure that load and timing
+    noise do not change."""
+    import glob
+    import gzip
+    import json
+    import tempfile
+
+    import jax
+
+    jax.block_until_ready(fn(*args))
+    with tempfile.TemporaryDirectory() as folder:
+        jax.profiler.start_trace(folder, create_perfetto_trace=True)
+        jax.block_until_ready(fn(*args))
+        jax.profiler.stop_trace()
+        (trace,) = glob.glob(folder + "/**/*.trace.json.gz", recursive=True)
+        with gzip.open(trace) as f:
+            events = json.load(f)["traceEvents"]
+    names = [e["name"] for e in events if e.get("ph") == "X"]
+    runtime = ("end:", "ThreadpoolListener", "ThunkExecutor", "$", "Pjit", "CommonPjRt",
+               "PjRt")
+    kernels = [n for n in names if not n.startswith(runtime) and "Execute" not in n]
+    return len(kernels), sum(1 for n in names if n == "ThunkExecutor::Execute")
 
 
 def kepler_states(eccentricities):
@@ -121,7 +151,7 @@ def step_costs(args) -> list[str]:
     lines = [f"# Kepler e = 0.5, h = 2pi/{args.steps_per_orbit}, {orbits} orbits alone, "
              f"{args.ensemble_orbits} orbits x {args.members} members under vmap"]
     lines.append(f"{'solver':34s} {'us/step':>9s} {'us/member-step':>15s} {'error':>9s} "
-                 f"{'updates/step':>12s}")
+                 f"{'updates/step':>12s} {'kernels/step':>12s}")
     q0, p0 = kepler_states([0.5])
     qs, ps = kepler_states(np.linspace(0.1, 0.6, args.members))
     m = args.steps_per_orbit * args.ensemble_orbits
@@ -151,6 +181,7 @@ def step_costs(args) -> list[str]:
         one = jax.jit(diffrax_run(solver, n, controller, dt0))
         seconds = _timed(one, q0[0], p0[0], repeats=args.repeats)
         q_end, steps = one(q0[0], p0[0])
+        kernels, _ = kernels_per_run(one, q0[0], p0[0])
         error = float(np.max(np.abs(np.asarray(q_end) - q_exact)))
         many = jax.jit(jax.vmap(diffrax_run(solver, m, controller, dt0)))
         batch_seconds = _timed(many, qs, ps, repeats=max(1, args.repeats // 2))
@@ -164,15 +195,16 @@ def step_costs(args) -> list[str]:
             ).solver_state
             updates = f"{float(state.iterations) / float(state.steps):.2f}"
         lines.append(f"{name:34s} {seconds / int(steps) * 1e6:9.2f} {per_member * 1e6:15.3f} "
-                     f"{error:9.1e} {updates:>12s}")
+                     f"{error:9.1e} {updates:>12s} {kernels / int(steps):12.1f}")
     floor = gauss_floor(degree + 1, h, args.floor_updates)
     one = jax.jit(lambda q, p: jax.lax.scan(floor, (q, p), None, length=n)[0])
     seconds = _timed(one, q0[0], p0[0], repeats=args.repeats)
+    kernels, _ = kernels_per_run(one, q0[0], p0[0])
     many = jax.jit(jax.vmap(lambda q, p: jax.lax.scan(floor, (q, p), None, length=m)[0]))
     batch_seconds = _timed(many, qs, ps, repeats=max(1, args.repeats // 2))
     lines.append(f"{'floor: plain-JAX Gauss, ' + str(args.floor_updates) + ' updates':34s} "
                  f"{seconds / n * 1e6:9.2f} {batch_seconds / (args.members * m) * 1e6:15.3f} "
-                 f"{'-':>9s}")
+                 f"{'-':>9s} {'-':>12s} {kernels / n:12.1f}")
     del jnp
     return lines
 
