@@ -76,6 +76,16 @@ def test_the_constraint_holds_to_round_off_and_the_energy_stays_bounded_over_1e5
     assert np.max(np.abs(lz - lz[0])) < 1e-11
 
 
+def test_the_constrained_step_is_time_reversible():
+    # the Lobatto pair is symmetric: 20 steps back from the end return to the start
+    problem = problems.spherical_pendulum()
+    forward = diffrax.diffeqsolve(problem.term, dvi.CGVI(3), 0.0, 1.0, 0.05, problem.y0)
+    end = (forward.ys[0][-1], forward.ys[1][-1])
+    back = diffrax.diffeqsolve(problem.term, dvi.CGVI(3), 1.0, 0.0, -0.05, end)
+    for x, x0 in zip(back.ys, problem.y0, strict=True):
+        assert np.max(np.abs(np.asarray(x[-1]) - np.asarray(x0))) < 1e-14
+
+
 def test_the_dense_output_follows_the_constrained_motion():
     problem = problems.spherical_pendulum()
     t1, n = 1.0, 20
