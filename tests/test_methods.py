@@ -262,8 +262,10 @@ def damped_exact(t0, q0, v0, ts):
         (dvi.ShallowNet, dvi.IntegratorExtrapolation()),
         (dvi.ShallowNet, dvi.HermiteExtrapolation()),
         (dvi.ShallowNet, dvi.PreviousStep()),
-        (dvi.ShallowNetAutodiff, dvi.IntegratorExtrapolation()),
-        (dvi.ShallowNetAutodiff, dvi.HermiteExtrapolation()),
+        # each trajectory: the free-endpoint cases above; the interpolating formulation:
+        # "interp-none"
+        pytest.param(dvi.ShallowNetAutodiff, dvi.IntegratorExtrapolation(), marks=pytest.mark.slow),
+        pytest.param(dvi.ShallowNetAutodiff, dvi.HermiteExtrapolation(), marks=pytest.mark.slow),
         (dvi.ShallowNetAutodiff, dvi.NoExtrapolation()),
     ],
     ids=["free-integrator", "free-hermite", "free-previous", "interp-integrator",

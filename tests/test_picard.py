@@ -94,7 +94,11 @@ def test_the_engine_is_chosen_only_where_it_applies():
     assert _engine(fast_network, kepler.term, kepler.y0, kepler.args) is not None
 
 
-@pytest.mark.parametrize("name", list(CASES))
+# the mass-spring case here; each case's engine step: test_its_step_is_a_root_of_the_step_equations
+@pytest.mark.parametrize("name", [
+    "mass_spring",
+    *(pytest.param(n, marks=pytest.mark.slow) for n in ("kepler", "charged_particle")),
+])
 def test_same_steps_as_the_chord_iteration(name):
     # Same equations, same root: the runs agree to round-off, and the engine took its own
     # path on every step (no restart through the chord iteration).

@@ -154,6 +154,8 @@ def test_nan_is_never_accepted():
     assert sol.result != diffrax.RESULTS.successful
 
 
+@pytest.mark.slow  # vmap of the default step against single solves: test_projection.py's
+# test_vmap_matches_loop_on_the_oscillator
 def test_vmap_over_initial_conditions_matches_single_solves():
     problem = problems.harmonic_oscillator(t1=0.3, dt=0.1)
     solver = shallow(dvi.tanh, 6, 6)
