@@ -177,16 +177,22 @@ def _newton(residual, start, scale, max_steps):
     work = lapack_dtype(dtype)  # LAPACK has no half precision: factorise in float32 there
 
     def factor(z):
+        # QR, not LU: on the CPU turning LU's pivots into a permutation is a loop of a few
+        # kernels per row, in every factorisation and every solve.
         matrix = jax.jacfwd(lambda y: _flat(residual(_unflat(y, z))))(_flat(z))
-        return jax.scipy.linalg.lu_factor(matrix.astype(work))
+        return jnp.linalg.qr(matrix.astype(work))
+
+    def qr_solve(factors, rhs):
+        q, r = factors
+        return jax.scipy.linalg.solve_triangular(r, q.T @ rhs, lower=False)
 
     def cond(carry):
-        z, lu, fresh, k, size, done = carry
+        z, factors, fresh, k, size, done = carry
         return ~done & (k < max_steps)
 
     def body(carry):
-        z, lu, fresh, k, previous, _ = carry
-        dz = -jax.scipy.linalg.lu_solve(lu, _flat(residual(z)).astype(work)).astype(dtype)
+        z, factors, fresh, k, previous, _ = carry
+        dz = -qr_solve(factors, _flat(residual(z)).astype(work)).astype(dtype)
         dz = _unflat(dz, z)
         z = jax.tree_util.tree_map(jnp.add, z, dz)
         size = relative(dz, z)
@@ -195,8 +201,8 @@ def _newton(residual, start, scale, max_steps):
         done = (size <= _STOP * eps) | (fresh & (size >= previous / 2) & (size <= eps ** 0.5))
         done = done | ~jnp.isfinite(size)
         slow = ~done & (size > previous / 4)
-        lu = unless_all_skip(slow, lambda: factor(z), lu)
-        return z, lu, slow, k + 1, size, done
+        factors = unless_all_skip(slow, lambda: factor(z), factors)
+        return z, factors, slow, k + 1, size, done
 
     inf = jnp.asarray(jnp.inf, start[0].dtype)
     yes = jnp.array(True)
