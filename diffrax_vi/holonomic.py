@@ -46,10 +46,9 @@ __all__ = [
     "curve_and_forces", "drift", "lobatto_rule", "no_previous_step",
 ]
 
-# Multiples of the working precision: where the solve stops (the last update this small
-# relative to the unknowns' size), and how far a start may sit off the constraint (square
-# root of eps relative to its scale, the tolerance of a user-supplied start).
+# Where the solve stops: its last update this many ulps of the unknowns' size.
 _STOP = 8.0
+# Newton updates of the end momentum's last impulse (one is exact for a velocity linear in p).
 _HIDDEN_ITERATIONS = 2
 
 
