@@ -275,11 +275,10 @@ def _start(term, degree, t, h, q0, p0, args, previous: PreviousStep):
     """The solve's start: the last step's curve and multipliers continued into this step
     (values of the same polynomials at the new points), or, without a last step, the
     straight line of the start's velocity with zero impulses; values as increments."""
-    tau, b, _ = _rule(degree, q0.dtype)
+    tau, weights, _ = _rule(degree, q0.dtype)
     points = lobatto_points(degree)
     line = (tau[1:, None] * h) * term.velocity(t, q0, p0, args)
     zero = jnp.zeros(previous.impulses[:-1].shape, q0.dtype)
-    _, weights, _ = _rule(degree, q0.dtype)
     continued = jax.vmap(lambda x: lagrange_weights(points, x))(1 + (h / previous.h) * tau)
     values = continued[1:] @ previous.values - q0
     multipliers = continued[:-1] @ (previous.impulses / (previous.h * weights)[:, None])
