@@ -23,7 +23,7 @@ demo: $(STAMP)
 # `make test` runs every feature's tests but leaves out those marked `slow`: the further
 # cases of a claim that a test in `make test` already makes (other problems, dtypes,
 # activations, vmap of a solve whose single run is tested), each marked where it is with the
-# test that keeps it covered. `make test-slow` runs them; CI (.ci/run) runs both.
+# test that keeps it covered. `make test-slow` runs them; CI (.ci/run) runs `make test` only.
 PYTEST_WORKERS ?= 2
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile -m "not slow and not long"

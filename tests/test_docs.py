@@ -212,8 +212,7 @@ def test_example_script_runs(tmp_path):
 @pytest.mark.slow
 def test_the_swing_up_example_converges_in_its_documented_iterations():
     """The example of the Forces and constraints page converges as the page says: from zero
-    torque, 150 Adam iterations take the loss from 9.9 to below 1e-5 (slow: `make test-slow`,
-    which CI runs)."""
+    torque, 150 Adam iterations take the loss from 9.9 to below 1e-5 (slow: `make test-slow`)."""
     import runpy
 
     example = runpy.run_path(str(ROOT / "examples" / "swing_up.py"))
