@@ -36,24 +36,33 @@ Euler–Lagrange equations, with `L_d(q_n, q_{n+1}) = A` at the stationary `θ`)
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .ansatz.base import AbstractBasis
+from .results import from_root_find
+from .root_finders.step_hints import step_options, traits_of
 from .terms import AbstractMechanicalTerm
 
 __all__ = [
     "AbstractFormulation",
     "FreeEndpoints",
     "InterpolatingEndpoints",
+    "SolveOptions",
     "StepContext",
+    "StepSolution",
     "action_gradient",
+    "jacobian_option",
     "node_momenta_and_forces",
+    "residual_scale",
     "stage_values",
 ]
 
@@ -100,12 +109,112 @@ def action_gradient(ctx: StepContext, curve: Callable[[PyTree, Array], Array], x
     return grad
 
 
+def residual_scale(ctx: StepContext) -> Array:
+    """Size of the step's residual terms: `1 + max(|q_n|, |p_n|)`."""
+    return 1 + jnp.maximum(jnp.max(jnp.abs(ctx.q0)), jnp.max(jnp.abs(ctx.p0)))
+
+
+class SolveOptions(NamedTuple):
+    """What a step's nonlinear solve takes from the solver: its root finder, the iteration
+    cap, the root find's adjoint, and the bound seed policy (`Seeder`: the all-parameter
+    start and fallback, the projected step's restart)."""
+
+    root_finder: optx.AbstractRootFinder
+    max_steps: int
+    adjoint: optx.AbstractAdjoint
+    seeder: Any
+
+
+class StepSolution(NamedTuple):
+    """How a step's solve ended (`AbstractFormulation.solve_step`).
+
+    - `theta`: the converged curve as ansatz parameters;
+    - `increments`: `(q_{n+1} − q_n, p_{n+1} − p_n)`, each to the rounding of its own size,
+      where the formulation solves in increments (the solver adds them, compensated);
+      else `None`;
+    - `end`: `(q_{n+1}, p_{n+1})` where the formulation solves for them; else `None`;
+    - `forces`: `∂L/∂q` at the nodes of the converged curve where the solve evaluated them
+      (for dense output); else `None`;
+    - `iterations`, `result` (a diffrax result), `residual` (final `max|F|`), `tolerance`
+      (the residual it had to reach; NaN where the root finder has none), `restarted`.
+    """
+
+    theta: Any
+    increments: tuple[Array, Array] | None
+    end: tuple[Array, Array] | None
+    forces: Array | None
+    iterations: Array
+    result: Any
+    residual: Array
+    tolerance: Array
+    restarted: Array
+
+
+def jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepContext):
+    """The Jacobian the solver hands its root finder (the hint `jacobian`, a function of the
+    unknowns and the step context): the block assembly of `formulation` where the root finder
+    asks for it (`"structured"`), or leaves the choice to us (`"auto"`) and the blocks have a
+    closed form; else `None`. The context comes in as the root find's `args`, not by closure,
+    so that implicit differentiation of the step sees it."""
+    mode = traits_of(root_finder).jacobian_mode()
+    if mode == "structured" or (
+        mode == "auto" and formulation.has_closed_form_jacobian(ctx.basis)
+    ):
+        return formulation.jacobian
+    return None
+
+
 class AbstractFormulation(eqx.Module):
     """How the ansatz becomes the curve of a step, and which equations fix its unknowns.
 
     The unknowns are a pair `(θ, e)`: the ansatz parameters and one endpoint quantity
-    (`p_{n+1}` for free endpoints, `q_{n+1}` for interpolating ones).
+    (`p_{n+1}` for free endpoints, `q_{n+1}` for interpolating ones). `solve_step` solves
+    them for one step.
     """
+
+    def solve_step(self, ctx: StepContext, seed, options: SolveOptions) -> StepSolution:
+        """The step's equations in all the ansatz parameters (the reference's solve), from
+        the seed policy's start `seed`, with its fallback."""
+        x0, seed_args, fallback = options.seeder.root_find_start(seed)
+        jacobian = jacobian_option(options.root_finder, self, ctx)
+        hints = dataclasses.replace(
+            fallback,
+            scale=residual_scale(ctx),
+            outputs=lambda x: self.end_state(x, ctx),
+            jacobian=None if jacobian is None else lambda x, a: jacobian(x, a[0]),
+        )
+        sol = optx.root_find(
+            lambda x, a: self.residual(x, a[0]), options.root_finder, x0, (ctx, *seed_args),
+            options=step_options(hints), max_steps=options.max_steps, adjoint=options.adjoint,
+            throw=False,
+        )
+        traits = traits_of(options.root_finder)
+        dtype = ctx.q0.dtype
+        read = traits.final_residual(sol.state, dtype)
+        if read is None:  # the root finder keeps no residual: evaluated at its end
+            f = ravel_pytree(self.residual(sol.value, ctx))[0]
+            tolerance = jnp.full((), jnp.nan, dtype)
+        else:
+            f, ftol = read
+            tolerance = (ftol * residual_scale(ctx)).astype(dtype)
+        residual = jax.lax.stop_gradient(jnp.max(jnp.abs(f)).astype(dtype))
+        return StepSolution(
+            theta=sol.value[0], increments=None, end=self.end_state(sol.value, ctx),
+            forces=None, iterations=jnp.asarray(sol.stats["num_steps"], jnp.int32),
+            result=from_root_find(sol.result), residual=residual, tolerance=tolerance,
+            restarted=jnp.asarray(traits.was_restarted(sol.state)),
+        )
+
+    def roots_may_drift(self, basis: AbstractBasis) -> bool:
+        """Whether the step's roots may not be isolated (all the parameters of a nonlinear
+        ansatz), so that the end state can walk off a first-order Lagrangian's constraint."""
+        return not basis.linear
+
+    def fixed_span(self, ctx: StepContext):
+        """The span the step solves on where it is fixed when the step is traced (the
+        projected step on a fixed hidden layer); else `None`."""
+        del ctx
+        return None
 
     def position(self, basis: AbstractBasis, theta, q0: Array, q1: Array, tau) -> Array:
         """The trial curve `q_h(τ)` given the parameters and the endpoint positions."""

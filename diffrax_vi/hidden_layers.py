@@ -23,6 +23,13 @@ __all__ = ["AbstractHiddenLayer", "FirstSeedLayer", "SeedLayer", "UniformLayer"]
 class AbstractHiddenLayer(eqx.Module):
     """Where a projected step's hidden layer `(w, β)` comes from."""
 
+    def fixed_parameters(self, basis, dim: int, dtype) -> Array | None:
+        """Parameters whose hidden layer is the same on every step, known when the step is
+        traced (for a linear ansatz, its zero coefficients); `None` where the layer comes
+        from a seed fit."""
+        del basis, dim, dtype
+        return None
+
 
 class SeedLayer(AbstractHiddenLayer):
     """The hidden layer of each step's own seed (the OGA fit of the trajectory seed, or
@@ -73,6 +80,11 @@ class UniformLayer(AbstractHiddenLayer):
         if isinstance(activation, ReLUk):
             return activation.k >= 2
         return activation in (tanh, sigmoid, gelu, gelu_exact)
+
+    def fixed_parameters(self, basis, dim: int, dtype) -> Array:
+        if isinstance(basis, ShallowNetBasis):
+            return self.parameters(basis, dim, dtype)
+        return basis.zeros(dim, dtype)
 
     def parameters(self, basis: ShallowNetBasis, dim: int, dtype) -> Array:
         """The network parameters `(α = 0, w, β)`, each `(S, D)`."""

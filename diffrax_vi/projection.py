@@ -31,10 +31,18 @@ from jaxtyping import Array
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .degenerate import first_order_end_correction
-from .formulation import FreeEndpoints, StepContext, node_momenta_and_forces, stage_values
+from .formulation import (
+    FreeEndpoints,
+    SolveOptions,
+    StepContext,
+    StepSolution,
+    node_momenta_and_forces,
+    stage_values,
+)
 from .hidden_layers import AbstractHiddenLayer, UniformLayer
 from .linalg import unpivoted_inverse
 from .precision import lapack_dtype
+from .projected_solve import solve_projected
 from .span import ProjectedSpan, any_traced, feature_span
 
 __all__ = ["KineticInverse", "VariableProjection"]
@@ -156,6 +164,22 @@ class VariableProjection(FreeEndpoints):
                 f"rank={self.rank} exceeds the {_features(basis)} features of {basis!r}: "
                 "the span has at most that many directions"
             )
+
+    def solve_step(self, ctx: StepContext, seed, options: SolveOptions) -> StepSolution:
+        """The step's equations on the span of the seed's hidden layer, in increments
+        (`diffrax_vi.projected_solve`)."""
+        hidden, start = seed.start
+        return solve_projected(self, ctx, options, hidden, start, seed.restart_history)
+
+    def roots_may_drift(self, basis: AbstractBasis) -> bool:
+        del basis
+        return False  # a square system with an isolated root
+
+    def fixed_span(self, ctx: StepContext) -> ProjectedSpan | None:
+        dim, dtype = ctx.q0.shape[0], ctx.q0.dtype
+        with jax.ensure_compile_time_eval():
+            hidden = self.hidden.fixed_parameters(ctx.basis, dim, dtype)
+        return None if hidden is None else self.span(hidden, ctx)
 
     def span_rank(self, basis: AbstractBasis, num_nodes: int) -> int:
         """`k`: the directions kept per coordinate."""

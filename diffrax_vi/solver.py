@@ -14,6 +14,7 @@ import optimistix as optx
 
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
+from .companion import companion_error
 from .degenerate import (
     CONSTRAINT_GROWTH,
     CONSTRAINT_TOLERANCE,
@@ -23,8 +24,10 @@ from .fallback import warn_all_parameter_fallback
 from .formulation import (
     AbstractFormulation,
     FreeEndpoints,
+    SolveOptions,
     StepContext,
     node_momenta_and_forces,
+    residual_scale,
     stage_values,
 )
 from .hidden_layers import UniformLayer
@@ -48,16 +51,16 @@ from .picard import (
     step_residual,
 )
 from .precision import compensated_add
+from .projected_solve import with_known_span
 from .projection import VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
 from .results import STEP_FAILURES, StepReport
 from .root_finders.damped_newton import LevenbergMarquardt
 from .root_finders.newton import RoundoffNewton
+from .root_finders.step_hints import traits_of
 from .seeding.policy import Seed, Seeder, SeedPolicy
-from .seeding.policy import residual_scale as _residual_scale
 from .solver_options import check_options
 from .solver_state import NetworkVIState
-from .step_solve import companion_error, solve_all, solve_projected, with_known_span
 from .terms import AbstractMechanicalTerm, unwrap_term
 from .validation import check_state, check_times, refuse_nonfinite_times
 
@@ -176,10 +179,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return FreeEndpoints()
 
     @property
-    def _roots_may_drift(self) -> bool:
-        """Whether the step solves for all the parameters of a nonlinear ansatz, whose roots
-        are not isolated: the one step the constraint monitor fails."""
-        return not isinstance(self.formulation, VariableProjection) and not self.basis.linear
+    def solve_options(self) -> SolveOptions:
+        """What the formulation's solve of a step reads of this solver."""
+        return SolveOptions(self.root_finder, self.root_find_max_steps, self.adjoint,
+                            self.seeder)
 
     @property
     def interpolation_cls(self):  # type: ignore[override]
@@ -283,30 +286,18 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         seeding = self.seeder
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
-        forces = None
-        if isinstance(self.formulation, VariableProjection):
-            solved = solve_projected(
-                self, ctx, *seed.start, restart_history=seed.restart_history
-            )
-            theta, (dq, dp), n, result, residual, tolerance, restarted = (
-                solved.theta, solved.increments, solved.iterations, solved.result,
-                solved.residual, solved.tolerance, solved.restarted,
-            )
-            forces = solved.forces
-            q1, p1, compensation, violation = self._end_state(ctx, state, dq, dp, True)
+        solved = self.formulation.solve_step(ctx, seed, self.solve_options)
+        if solved.increments is not None:  # added here, compensated
+            q1, p1, compensation, violation = self._end_state(ctx, state, *solved.increments,
+                                                              True)
         else:
-            theta, (q1, p1), n, result, residual, tolerance, restarted = solve_all(
-                self, ctx, seed
-            )
-            compensation = state.compensation
-            violation = None
-        q1 = q1.astype(ctx.q0.dtype)
-        p1 = p1.astype(ctx.p0.dtype)
-        if violation is None:
+            (q1, p1), compensation = solved.end, state.compensation
+            q1, p1 = q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype)
             _, violation = end_on_constraint(ctx, q1, p1, correct=False)
         return self._finish_step(
-            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-            compensation, violation, forces,
+            ctx, state, record, seed, solved.theta, q1.astype(ctx.q0.dtype),
+            p1.astype(ctx.p0.dtype), solved.iterations, solved.result, solved.residual,
+            solved.tolerance, solved.restarted, compensation, violation, solved.forces,
         )
 
     def _picard_engine(self, ctx):
@@ -315,17 +306,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         traced and the same in every coordinate (a linear ansatz, a fixed hidden layer), a
         root finder that allows it (`FixedPointIteration(picard=True)`), and a Lagrangian
         whose kinetic matrix is constant. Decided when the step is traced; else `None`."""
-        if not (isinstance(self.formulation, VariableProjection)
-                and isinstance(self.formulation.hidden, UniformLayer)
-                and getattr(self.root_finder, "picard", False)):
+        if not traits_of(self.root_finder).allows_picard():
             return None
-        dim, dtype = ctx.q0.shape[0], ctx.q0.dtype
-        with jax.ensure_compile_time_eval():
-            if isinstance(ctx.basis, ShallowNetBasis):
-                hidden = self.formulation.hidden.parameters(ctx.basis, dim, dtype)
-            else:
-                hidden = ctx.basis.zeros(dim, dtype)
-        span = self.formulation.span(hidden, ctx)
+        span = self.formulation.fixed_span(ctx)
+        if span is None:
+            return None
         plan = picard_plan(span, ctx.weights)
         if plan is None:
             return None
@@ -360,7 +345,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             g_start = jnp.where(made_jump, rest[1], g_start)
         dtype = ctx.q0.dtype
         eps = float(jnp.finfo(dtype).eps)
-        tolerance = (self.root_finder.ftol * eps * _residual_scale(ctx)).astype(dtype)
+        tolerance = (self.root_finder.ftol * eps * residual_scale(ctx)).astype(dtype)
         known = with_known_span(span)((ctx, span, None))
 
         def residual(z):
@@ -470,7 +455,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # `init`'s run-time check of the times is part of every solve's program.
         invalid = (ctx.h == 0) | ~jnp.isfinite(ctx.h) | ~jnp.isfinite(state.report.t)
         result = diffrax.RESULTS.where(invalid, STEP_FAILURES["vi_step_size_invalid"], result)
-        scale = _residual_scale(ctx)
+        scale = residual_scale(ctx)
         constraint = (violation / scale).astype(ctx.q0.dtype)
         first = jnp.where(jnp.isnan(state.first_constraint), constraint, state.first_constraint)
         # Drift is growth: above eps^CONSTRAINT_TOLERANCE and CONSTRAINT_GROWTH times the
@@ -480,7 +465,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         drift = (constraint > float(jnp.finfo(ctx.q0.dtype).eps) ** CONSTRAINT_TOLERANCE) & (
             constraint > CONSTRAINT_GROWTH * first
         )
-        drift = drift & self._roots_may_drift
+        drift = drift & self.formulation.roots_may_drift(self.basis)
         result = diffrax.RESULTS.where(
             drift & (result == diffrax.RESULTS.successful),
             STEP_FAILURES["vi_constraint_drift"],
@@ -565,7 +550,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         y_error = None
         if self.error_estimate is not None:
             ok = (result == diffrax.RESULTS.successful) & finite
-            y_error = companion_error(self, ctx, curve, q1, p1, ok)
+            y_error = companion_error(self.error_estimate, self.solve_options, ctx, curve, q1,
+                                      p1, ok)
         return (q1, p1), y_error, dense_info, new_state, result
 
     def func(self, terms, t0, y0, args):

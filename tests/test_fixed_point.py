@@ -10,8 +10,8 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
+from diffrax_vi.projected_solve import FIRST_TRY, projected_root_find
 from diffrax_vi.root_finders.fixed_point import FixedPointIteration
-from diffrax_vi.step_solve import FIRST_TRY, projected_root_find
 
 jax.config.update("jax_enable_x64", True)
 
@@ -79,9 +79,9 @@ def test_same_root_as_newton_on_a_step(name, kind):
     @jax.jit
     def solve(y0):
         ctx, span, z0 = step_system(newton, problem, h)
-        a = projected_root_find(newton, ctx, span, z0, 50)
+        a = projected_root_find(newton.formulation, newton.solve_options, ctx, span, z0, 50)
         start = jax.tree_util.tree_map(lambda x: x * (1 + 1e-3) + 1e-4, a.value)
-        b = projected_root_find(chord, ctx, span, start, 50)
+        b = projected_root_find(chord.formulation, chord.solve_options, ctx, span, start, 50)
         end = newton.formulation.projected_end_state
         return end(a.value, span, ctx), end(b.value, span, ctx), a.result, b.result, b.state
 
@@ -214,7 +214,7 @@ def test_refresh_speeds_up_a_slow_chord_on_a_step():
         for rf in (FixedPointIteration(ftol=0.0), FixedPointIteration(ftol=0.0, refresh=0.1)):
             solver = dvi.CGVI(6, root_finder=rf)
             ctx, span, z0 = step_system(solver, problem, 0.5)
-            sol = projected_root_find(solver, ctx, span, z0, 100)
+            sol = projected_root_find(solver.formulation, solver.solve_options, ctx, span, z0, 100)
             out.append((sol.value, sol.result, sol.stats["num_steps"], sol.state.refreshes))
         return out
 
@@ -301,12 +301,13 @@ def test_predict_reaches_round_off_in_fewer_updates(name):
     @jax.jit
     def solve(y0):
         ctx, span, z0 = step_system(newton, problem, h)
-        a = projected_root_find(newton, ctx, span, z0, 50)
+        a = projected_root_find(newton.formulation, newton.solve_options, ctx, span, z0, 50)
         start = jax.tree_util.tree_map(lambda x: x * (1 + 1e-3) + 1e-4, a.value)
         out = []
         for predict in (False, True):
             solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0, predict=predict))
-            sol = projected_root_find(solver, ctx, span, start, 50)
+            sol = projected_root_find(solver.formulation, solver.solve_options, ctx, span,
+                                      start, 50)
             out.append((newton.formulation.projected_end_state(sol.value, span, ctx),
                         sol.result, sol.stats["num_steps"]))
         return newton.formulation.projected_end_state(a.value, span, ctx), out
@@ -499,10 +500,10 @@ def test_a_non_finite_start_ends_the_solve_at_once(root_finder):
     solver = dvi.CGVI(6, root_finder=root_finder)
     ctx, span, z0 = step_system(solver, problems.harmonic_oscillator(), 0.5)
     bad = jax.tree_util.tree_map(lambda a: a.at[(0,) * a.ndim].set(jnp.nan), z0)
-    sol = projected_root_find(solver, ctx, span, bad, 50)
+    sol = projected_root_find(solver.formulation, solver.solve_options, ctx, span, bad, 50)
     assert sol.result == optx.RESULTS.nonfinite
     assert int(sol.stats["num_steps"]) == 0
-    good = projected_root_find(solver, ctx, span, z0, 50)
+    good = projected_root_find(solver.formulation, solver.solve_options, ctx, span, z0, 50)
     assert good.result == optx.RESULTS.successful and int(good.stats["num_steps"]) >= 1
 
 

@@ -582,7 +582,7 @@ def test_a_span_known_when_traced_reaches_the_root_finder_as_a_constant():
     """optimistix traces the `args` of a root find; the projected step's functions read a
     span known when the step is traced from the step instead, so that it stays a constant
     (and `uniform_span` holds inside the solve); a traced span is passed on as it is."""
-    from diffrax_vi.step_solve import with_known_span
+    from diffrax_vi.projected_solve import with_known_span
 
     solver = dvi.CGVI(4)
     problem = problems.double_pendulum()

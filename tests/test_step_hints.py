@@ -9,7 +9,6 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import diffrax_vi as dvi
-from diffrax_vi import step_solve
 from diffrax_vi.root_finders.step_hints import (
     HINT_FEATURES,
     AbstractStepRootFinder,
@@ -58,14 +57,14 @@ def test_a_plain_optimistix_root_finder_is_told_what_it_lacks():
 
 def _captured_hints(monkeypatch, solver) -> list[StepHints]:
     seen = []
-    root_find = step_solve.optx.root_find
+    root_find = optx.root_find
 
     def spy(*args, options=None, **kwargs):
         seen.append(hints_of(options))
         assert set(options) == {"step"}
         return root_find(*args, options=options, **kwargs)
 
-    monkeypatch.setattr(step_solve.optx, "root_find", spy)
+    monkeypatch.setattr(optx, "root_find", spy)
     sol = diffrax.diffeqsolve(TERM, solver, 0.0, 0.2, 0.1, Y0)
     assert sol.result == diffrax.RESULTS.successful
     return seen

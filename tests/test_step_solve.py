@@ -1,4 +1,5 @@
-"""What a step's nonlinear solve hands its root finder (`diffrax_vi.step_solve`)."""
+"""The Jacobian a step's nonlinear solve hands its root finder
+(`diffrax_vi.formulation.jacobian_option`)."""
 
 import jax.numpy as jnp
 
@@ -15,7 +16,7 @@ F64 = jnp.float64
 def test_auto_jacobian_hands_the_closed_form_to_the_root_finder():
     """Under `jacobian="auto"` NetworkVI passes its block Jacobian exactly where
     it has a closed form, and the root finder differentiates otherwise."""
-    from diffrax_vi.step_solve import jacobian_option as _jacobian_option
+    from diffrax_vi.formulation import jacobian_option as _jacobian_option
 
     problem = problems.double_pendulum(dtype=F64)
     auto, fwd = LevenbergMarquardt(jacobian="auto"), LevenbergMarquardt()

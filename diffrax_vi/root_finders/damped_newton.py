@@ -199,6 +199,15 @@ class AbstractDampedNewton(AbstractStepRootFinder):
         traced boolean so that one compiled program serves both tests."""
         return self.convergence == "reference"
 
+    def was_restarted(self, state: _DampedNewtonState) -> Array:
+        return state.restarted
+
+    def final_residual(self, state: _DampedNewtonState, dtype) -> tuple[Array, float]:
+        return state.f, self.tolerances(dtype)["ftol"]
+
+    def jacobian_mode(self) -> str:
+        return self.jacobian
+
     def tolerances(self, dtype) -> dict[str, float]:
         """`ftol`, `floor` and `otol` in effect for `dtype`: the given ones, else the defaults
         (`default_tolerances`)."""

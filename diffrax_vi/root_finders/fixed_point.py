@@ -166,6 +166,9 @@ class FixedPointIteration(RoundoffNewton):
     predict: bool = eqx.field(static=True, default=False)
     picard: bool = eqx.field(static=True, default=False)
 
+    def allows_picard(self) -> bool:
+        return self.picard
+
     def __check_init__(self):
         if self.matrix not in ("jacobian", "kinetic"):
             raise ValueError(f"matrix must be 'jacobian' or 'kinetic', got {self.matrix!r}")

@@ -18,6 +18,7 @@ from jaxtyping import Array
 
 from ..lazy import unless_all_skip
 from ..linalg import solve
+from .damped_newton import LevenbergMarquardt
 from .step_hints import AbstractStepRootFinder, StepHints, hints_of
 
 __all__ = ["NewtonState", "RoundoffNewton"]
@@ -159,6 +160,13 @@ class RoundoffNewton(AbstractStepRootFinder):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+    def was_restarted(self, state: NewtonState) -> Array:
+        return state.restarted
+
+    def companion(self) -> optx.AbstractRootFinder:
+        # the companion solves all the coefficients of a polynomial: a damped root finder
+        return LevenbergMarquardt()
 
     def _tolerance(self, name: str, dtype) -> float:
         return getattr(self, name) * float(jnp.finfo(dtype).eps)

@@ -14,15 +14,19 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import Array
 
 __all__ = [
     "HINT_FEATURES",
     "AbstractStepRootFinder",
     "StepHints",
+    "StepRootFinderTraits",
     "hints_of",
     "missing_hints",
     "step_options",
+    "traits_of",
 ]
 
 OPTIONS_KEY = "step"
@@ -89,16 +93,62 @@ def hints_of(options: dict | None) -> StepHints:
     return StepHints() if hints is None else hints
 
 
-class AbstractStepRootFinder(optx.AbstractRootFinder):
-    """An optimistix root finder that reads the solver's `StepHints` (`hints_of(options)`).
-    `hints_read` names the hints it uses."""
+class StepRootFinderTraits(eqx.Module):
+    """What the step asks of its root finder beyond optimistix's interface, with the answers
+    for a root finder that knows nothing of the step (any optimistix root finder, through
+    `traits_of`). `AbstractStepRootFinder` derives from it and its subclasses answer for
+    themselves."""
 
     hints_read: ClassVar[frozenset[str]] = frozenset()
+
+    def reads_hint(self, name: str) -> bool:
+        """Whether it uses the hint `name` of `StepHints`."""
+        return name in self.hints_read
+
+    def was_restarted(self, state: Any) -> Array:
+        """Whether the solve that ended in `state` restarted from a second start."""
+        del state
+        return jnp.array(False)
+
+    def final_residual(self, state: Any, dtype) -> tuple[Array, float] | None:
+        """`(flat residual, ftol)` where the solve ended, read off its final `state`, with the
+        residual it had to reach relative to the hint `scale`; `None` where the state does
+        not keep them (the caller evaluates the residual)."""
+        del state, dtype
+        return None
+
+    def jacobian_mode(self) -> str | None:
+        """How it wants the Jacobian: `"structured"` (the formulation's block assembly),
+        `"auto"` (that where it has a closed form), another mode of its own, or `None`."""
+        return None
+
+    def companion(self) -> optx.AbstractRootFinder | None:
+        """The root finder of the error estimate's companion step (all the coefficients of a
+        polynomial); `None`: this one."""
+        return None
+
+    def allows_picard(self) -> bool:
+        """Whether the projected step may take the Jacobian-free iteration
+        (`diffrax_vi.picard`) in its place."""
+        return False
+
+
+class AbstractStepRootFinder(optx.AbstractRootFinder, StepRootFinderTraits):
+    """An optimistix root finder that reads the solver's `StepHints` (`hints_of(options)`).
+    `hints_read` names the hints it uses; the methods of `StepRootFinderTraits` say the rest
+    of what the step needs to know of it."""
+
+
+_NO_TRAITS = StepRootFinderTraits()
+
+
+def traits_of(root_finder: optx.AbstractRootFinder) -> StepRootFinderTraits:
+    """The step's questions answered for `root_finder`: by itself where it derives from
+    `AbstractStepRootFinder`, else the answers for a root finder that reads no hint."""
+    return root_finder if isinstance(root_finder, AbstractStepRootFinder) else _NO_TRAITS
 
 
 def missing_hints(root_finder: optx.AbstractRootFinder) -> dict[str, str]:
     """The features of `HINT_FEATURES` that `root_finder` goes without, by hint name."""
-    read = getattr(root_finder, "hints_read", frozenset())
-    if not isinstance(root_finder, AbstractStepRootFinder):
-        read = frozenset()
-    return {name: what for name, what in HINT_FEATURES.items() if name not in read}
+    traits = traits_of(root_finder)
+    return {name: what for name, what in HINT_FEATURES.items() if not traits.reads_hint(name)}

@@ -19,7 +19,13 @@ from jaxtyping import Array, PyTree
 
 from ..ansatz.base import AbstractBasis
 from ..ansatz.shallow import ShallowNetBasis
-from ..formulation import AbstractFormulation, FreeEndpoints, StepContext, stage_values
+from ..formulation import (
+    AbstractFormulation,
+    FreeEndpoints,
+    StepContext,
+    residual_scale,
+    stage_values,
+)
 from ..hidden_layers import FirstSeedLayer, UniformLayer
 from ..lazy import unless_all_skip
 from ..oga import AbstractOGA, OGA1d
@@ -37,7 +43,7 @@ from .trajectories import (
     labels_curve,
 )
 
-__all__ = ["Seed", "SeedPolicy", "SeedRecord", "Seeder", "residual_scale"]
+__all__ = ["Seed", "SeedPolicy", "SeedRecord", "Seeder"]
 
 
 class SeedPolicy(eqx.Module):
@@ -398,11 +404,6 @@ class Seeder(eqx.Module):
         seed_curve = labels_curve(labels.astype(ctx.q0.dtype))
         z = self.formulation.start(seed_curve, p_end.astype(ctx.p0.dtype), span, ctx)
         return jax.lax.stop_gradient(z)
-
-
-def residual_scale(ctx: StepContext) -> Array:
-    """Size of the step's residual terms: `1 + max(|q_n|, |p_n|)`."""
-    return 1 + jnp.maximum(jnp.max(jnp.abs(ctx.q0)), jnp.max(jnp.abs(ctx.p0)))
 
 
 def _history(ctx: StepContext, curve, q1: Array) -> StepHistory:
