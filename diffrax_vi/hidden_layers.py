@@ -84,7 +84,8 @@ class UniformLayer(AbstractHiddenLayer):
     def fixed_parameters(self, basis, dim: int, dtype) -> Array:
         if isinstance(basis, ShallowNetBasis):
             return self.parameters(basis, dim, dtype)
-        return basis.zeros(dim, dtype)
+        # a linear ansatz: assembled in NumPy, as `parameters` is
+        return jnp.asarray(np.zeros((basis.num_params(), dim)), dtype)
 
     def parameters(self, basis: ShallowNetBasis, dim: int, dtype) -> Array:
         """The network parameters `(α = 0, w, β)`, each `(S, D)`."""

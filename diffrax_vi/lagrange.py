@@ -25,12 +25,13 @@ def lagrange_weights(points: tuple[float, ...], tau: Array) -> Array:
     """Values at `tau` of the Lagrange basis polynomials through `points` (first-form formula,
     exact at the points themselves)."""
     dtype = jnp.result_type(tau)
-    x = jnp.asarray(points, dtype)
-    w = jnp.asarray(_barycentric(points), dtype)
+    # constants as NumPy arrays: nothing to compile where they are evaluated eagerly
+    x = np.asarray(points, dtype)
+    w = _barycentric(points).astype(dtype)
     diff = tau - x
     n = len(points)
     # ℓ_k(τ) = w_k Π_{m≠k} (τ − x_m): a product over the other points, no division by zero.
-    others = jnp.where(np.eye(n, dtype=bool), jnp.ones((), dtype), diff[None, :])
+    others = jnp.where(np.eye(n, dtype=bool), np.ones((), dtype), diff[None, :])
     values = w * jnp.prod(others, axis=1)
     # At a point the rounded weight times the product can miss 1 by an ulp, which would
     # scale the state by 1 ± eps on every step (a linear energy drift): there the values are

@@ -65,8 +65,7 @@ def _features_at(theta, basis: AbstractBasis, nodes: Array, dim: int, dtype):
     """`(value, slope, hidden)`: the features' values and τ-slopes (`(R + 2, S, D)`) at the
     nodes, then at `τ = 0` and `τ = 1`, and the hidden layer `(w, β)` of a network (`()` for
     a linear ansatz)."""
-    nodes = jnp.asarray(nodes).astype(dtype)
-    taus = jnp.concatenate([nodes, jnp.array([0.0, 1.0], dtype)])
+    taus = jnp.concatenate([jnp.asarray(nodes).astype(dtype), np.array([0.0, 1.0], dtype)])
     if isinstance(basis, ShallowNetBasis):
         _, w, beta = basis.split(theta)
         z = w * taus[:, None, None] + beta  # (K, S, D)
@@ -74,7 +73,7 @@ def _features_at(theta, basis: AbstractBasis, nodes: Array, dim: int, dtype):
         return value, w * slope, (w, beta)
     # A linear ansatz: its basis functions are the features, the same in every coordinate
     # (column j of the identity as parameters gives function j).
-    eye = jnp.eye(basis.num_params(), dtype=dtype)
+    eye = np.eye(basis.num_params(), dtype=dtype)
     value, slope = jax.vmap(
         lambda tau: jax.jvp(lambda t: basis.evaluate(eye, t), (tau,), (jnp.ones_like(tau),))
     )(taus)

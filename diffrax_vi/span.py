@@ -153,5 +153,8 @@ def _eager_reduction(fn, *args):
     first call). Only its reductions need JAX for that: its other operations (elementwise
     IEEE arithmetic, data movement) round alike in NumPy, which compiles nothing, so the
     span is the same to the bit."""
+    # NumPy inputs placed as device arrays first: converted by `fn`, each would compile a
+    # conversion of its own
+    args = [jax.device_put(a) if isinstance(a, np.ndarray) else a for a in args]
     with jax.ensure_compile_time_eval():
         return jax.tree_util.tree_map(np.asarray, fn(*args))
