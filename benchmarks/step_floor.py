@@ -18,12 +18,14 @@ Each row also counts the kernels one step launches (`kernels_per_run`: XLA's CPU
 runs a compiled program as a sequence of kernels, each with a fixed cost of its own; the count
 is read from a profile of one run and does not depend on the machine's load).
 
-Then the first call of a fresh process (trace, compile and one run; no persistent
-compilation cache) of `CGVI(6)` (its default and the engine) and `NetworkVI` against
-`diffrax.Dopri8`'s on the same problem, double pendulum and Kepler, 10 steps each: `--fresh`
-runs, interleaved, medians and their ratios.
+Then the size of the program of a 10-step solve (`program_sizes`: jaxpr equations,
+optimised HLO instructions, while loops), and the first call of a fresh process (trace,
+compile and one run; no persistent compilation cache) of `CGVI(6)` (its default and the
+engine) and `NetworkVI` against `diffrax.Dopri8`'s on the same problem, double pendulum and
+Kepler, 10 steps each: `--fresh` runs, interleaved, medians and their ratios.
 
     .venv/bin/python -m benchmarks.step_floor [--degree 6] [--members 256] [--fresh 5]
+        [--only steps|sizes|first-call]
 """
 
 from __future__ import annotations
@@ -209,6 +211,60 @@ def step_costs(args) -> list[str]:
     return lines
 
 
+def _equations(jaxpr) -> int:
+    """Equations of a jaxpr, counting those of its sub-jaxprs (loops, branches, calls) in
+    place of the equation that holds them."""
+    from jax.extend.core import ClosedJaxpr, Jaxpr
+
+    count = 0
+    for eqn in jaxpr.eqns:
+        inner = [p for v in eqn.params.values() for p in (v if isinstance(v, tuple | list)
+                                                           else (v,))
+                 if isinstance(p, ClosedJaxpr | Jaxpr)]
+        count += sum(_equations(p.jaxpr if isinstance(p, ClosedJaxpr) else p)
+                     for p in inner) if inner else 1
+    return count
+
+
+def program_sizes(args) -> list[str]:
+    """The size of the program of a 10-step solve (what its first call traces and compiles):
+    equations of its jaxpr, instructions and while loops of XLA's optimised HLO. Beside the
+    default `CGVI(6)`: without the restart of a solve not converged in `FIRST_TRY` updates
+    (`root_find_max_steps=16`), and with the restart seeded by `HermiteExtrapolation()`
+    instead of the default `IntegratorExtrapolation()` (the implicit midpoint rule)."""
+    import diffrax
+    import jax
+
+    import diffrax_vi as dvi
+    from diffrax_vi import problems
+
+    engine = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
+    solvers = {
+        "Dopri8": diffrax.Dopri8(),
+        "CGVI(6)": dvi.CGVI(6),
+        "CGVI(6) engine": dvi.CGVI(6, root_finder=engine),
+        "CGVI(6) no restart": dvi.CGVI(6, root_find_max_steps=16),
+        "CGVI(6) Hermite restart": dvi.CGVI(
+            6, initial_trajectory_method=dvi.HermiteExtrapolation()),
+        "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
+    }
+    lines = ["# program of a 10-step solve: jaxpr equations, optimised HLO instructions, "
+             "while loops"]
+    for name in ("double_pendulum", "kepler"):
+        problem = getattr(problems, name)()
+        h = float(problem.dt)
+        for which, solver in solvers.items():
+            def run(y0, solver=solver):
+                return diffrax.diffeqsolve(problem.term, solver, 0.0, 10 * h, h, y0,
+                                           args=problem.args, max_steps=16).ys
+            equations = _equations(jax.make_jaxpr(run)(problem.y0).jaxpr)
+            hlo = jax.jit(run).lower(problem.y0).compile().as_text()
+            instructions = sum(" = " in line for line in hlo.splitlines())
+            lines.append(f"{name:16s} {which:24s} jaxpr {equations:5d}  HLO {instructions:5d}  "
+                         f"while {hlo.count(' while('):3d}")
+    return lines
+
+
 FIRST_CALL = """
 import sys, time
 start = time.perf_counter()
@@ -264,15 +320,17 @@ def main() -> None:
     parser.add_argument("--dopri-rtol", type=float, default=1e-13)
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--fresh", type=int, default=5, help="0 skips the first calls")
-    parser.add_argument("--only", choices=("steps", "first-call"))
+    parser.add_argument("--only", choices=("steps", "sizes", "first-call"))
     args = parser.parse_args()
     import jax
 
     jax.config.update("jax_enable_x64", True)
     print(f"# jax {jax.__version__} on {jax.devices()[0].platform}")
-    if args.only != "first-call":
+    if args.only in (None, "steps"):
         print("\n".join(step_costs(args)), flush=True)
-    if args.only != "steps" and args.fresh:
+    if args.only in (None, "sizes"):
+        print("\n".join(program_sizes(args)), flush=True)
+    if args.only in (None, "first-call") and args.fresh:
         print("\n".join(first_calls(args)), flush=True)
 
 
