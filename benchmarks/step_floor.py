@@ -229,9 +229,8 @@ def _equations(jaxpr) -> int:
 def program_sizes(args) -> list[str]:
     """The size of the program of a 10-step solve (what its first call traces and compiles):
     equations of its jaxpr, instructions and while loops of XLA's optimised HLO. Beside the
-    default `CGVI(6)`: without the restart of a solve not converged in `FIRST_TRY` updates
-    (`root_find_max_steps=16`), and with the restart seeded by `HermiteExtrapolation()`
-    instead of the default `IntegratorExtrapolation()` (the implicit midpoint rule)."""
+    default `CGVI(6)`: the same without the restart of a solve not converged in `FIRST_TRY`
+    updates (`root_find_max_steps=16`), which shows how much of the program the restart is."""
     import diffrax
     import jax
 
@@ -244,8 +243,6 @@ def program_sizes(args) -> list[str]:
         "CGVI(6)": dvi.CGVI(6),
         "CGVI(6) engine": dvi.CGVI(6, root_finder=engine),
         "CGVI(6) no restart": dvi.CGVI(6, root_find_max_steps=16),
-        "CGVI(6) Hermite restart": dvi.CGVI(
-            6, initial_trajectory_method=dvi.HermiteExtrapolation()),
         "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
     }
     lines = ["# program of a 10-step solve: jaxpr equations, optimised HLO instructions, "
