@@ -230,7 +230,8 @@ def program_sizes(args) -> list[str]:
     """The size of the program of a 10-step solve (what its first call traces and compiles):
     equations of its jaxpr, instructions and while loops of XLA's optimised HLO. Beside the
     default `CGVI(6)`: the same without the restart of a solve not converged in `FIRST_TRY`
-    updates (`root_find_max_steps=16`), which shows how much of the program the restart is."""
+    updates (`root_find_max_steps=16`), which shows how much of the program the restart is,
+    and with `refresh` on both tries, so that one compiled loop of updates serves them."""
     import diffrax
     import jax
 
@@ -243,6 +244,8 @@ def program_sizes(args) -> list[str]:
         "CGVI(6)": dvi.CGVI(6),
         "CGVI(6) engine": dvi.CGVI(6, root_finder=engine),
         "CGVI(6) no restart": dvi.CGVI(6, root_find_max_steps=16),
+        "CGVI(6) one loop": dvi.CGVI(6, root_finder=dvi.FixedPointIteration(
+            ftol=0.0, predict=True, refresh=0.5)),
         "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
     }
     lines = ["# program of a 10-step solve: jaxpr equations, optimised HLO instructions, "
