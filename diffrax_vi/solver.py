@@ -291,13 +291,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             q1, p1, compensation, violation = self._end_state(ctx, state, *solved.increments,
                                                               True)
         else:
-            (q1, p1), compensation = solved.end, state.compensation
-            q1, p1 = q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype)
+            (q1, p1), compensation, violation = solved.end, state.compensation, None
+        q1, p1 = q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype)
+        if violation is None:
             _, violation = end_on_constraint(ctx, q1, p1, correct=False)
         return self._finish_step(
-            ctx, state, record, seed, solved.theta, q1.astype(ctx.q0.dtype),
-            p1.astype(ctx.p0.dtype), solved.iterations, solved.result, solved.residual,
-            solved.tolerance, solved.restarted, compensation, violation, solved.forces,
+            ctx, state, record, seed, solved.theta, q1, p1, solved.iterations, solved.result,
+            solved.residual, solved.tolerance, solved.restarted, compensation, violation,
+            solved.forces,
         )
 
     def _picard_engine(self, ctx):

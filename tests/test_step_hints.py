@@ -152,3 +152,23 @@ def test_a_restart_hint_needs_the_iteration_cap():
     with pytest.raises(ValueError, match="max_iterations"):
         optx.root_find(lambda y, args: y - 1.0, dvi.RoundoffNewton(), jnp.zeros(2),
                        options=step_options(hints), max_steps=10, throw=False)
+
+
+def test_each_root_finder_answers_the_steps_questions():
+    """What the step asks its root finder beyond optimistix's interface (`traits_of`): any
+    optimistix root finder gets the answers of one that reads no hint; ours answer for
+    themselves."""
+    from diffrax_vi.root_finders.step_hints import traits_of
+
+    foreign = traits_of(optx.Newton(rtol=1e-8, atol=1e-8))
+    assert not any(foreign.reads_hint(name) for name in HINT_FEATURES)
+    assert foreign.jacobian_mode() is None and foreign.companion() is None
+    assert foreign.final_residual(None, jnp.float64) is None
+    assert not foreign.allows_picard() and not bool(foreign.was_restarted(None))
+    assert traits_of(dvi.FixedPointIteration(picard=True)).allows_picard()
+    assert not traits_of(dvi.FixedPointIteration()).allows_picard()
+    assert isinstance(traits_of(dvi.RoundoffNewton()).companion(), dvi.LevenbergMarquardt)
+    assert traits_of(dvi.LevenbergMarquardt()).companion() is None
+    assert traits_of(dvi.LevenbergMarquardt(jacobian="structured")).jacobian_mode() == (
+        "structured")
+    assert traits_of(dvi.RoundoffNewton()).reads_hint("max_iterations")
