@@ -83,14 +83,15 @@ def _features_at(theta, basis: AbstractBasis, nodes: Array, dim: int, dtype):
 
 def _known_features(theta, basis: AbstractBasis, nodes, dim: int, dtype):
     """`_features_at` of inputs known when the step is traced, as NumPy arrays, by one
-    compiled program (operation by operation, each would compile on its own)."""
+    compiled program (operation by operation, each would compile on its own), run now even
+    while a step is being traced."""
     arrays, static = eqx.partition((theta, basis, nodes), eqx.is_array)
     try:
         hash(static)
         program = _features_program
     except TypeError:  # an ansatz with unhashable settings: compiled for this call
         program = jax.jit(_features_program.__wrapped__, static_argnums=(1, 2, 3))
-    with jax.ensure_compile_time_eval():
+    with jax.core.eval_context():
         out = program(arrays, static, dim, dtype)
     return jax.tree_util.tree_map(np.asarray, out)
 
@@ -192,9 +193,13 @@ class VariableProjection(FreeEndpoints):
         Where nothing it depends on is traced (a linear ansatz, or a fixed hidden layer such
         as `UniformLayer`'s), it is computed once, when the step is traced, and enters the
         compiled step as a constant: no factorisation per step."""
+        inputs = (theta, ctx.basis, ctx.nodes, ctx.weights, ctx.q0.shape[0], ctx.q0.dtype)
+        if not any_traced(*inputs[:4]):
+            # NumPy and one compiled program (`_known_features`), run now: concrete arrays
+            with jax.core.eval_context():
+                return self._span(*inputs)
         with jax.ensure_compile_time_eval():
-            return self._span(theta, ctx.basis, ctx.nodes, ctx.weights, ctx.q0.shape[0],
-                              ctx.q0.dtype)
+            return self._span(*inputs)
 
     def _span(self, theta: Array, basis: AbstractBasis, nodes: Array, weights: Array,
               dim: int, dtype) -> ProjectedSpan:

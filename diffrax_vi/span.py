@@ -68,11 +68,12 @@ def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: fl
     weights are the features' least-squares fit of the constant.
 
     Where none of its inputs is traced (a span known when the step is traced), it runs in
-    NumPy but for its SVDs and contractions, which JAX runs (`_eager_reduction`): the same
-    span to the bit as JAX's operations one by one, without compiling each of them."""
+    NumPy, SVDs included: evaluated by JAX operation by operation, each operation would
+    compile a program of its own (seconds of a first call). NumPy's LAPACK rounds otherwise
+    than XLA's, so the directions agree with those of a traced span to rounding, each up to
+    its sign: the same span."""
     known = not any_traced(value, slope, weights, hidden)
     xp = np if known else jnp
-    reduce = _eager_reduction if known else _call
     n = value.shape[0] - 2
     dtype = value.dtype
     work = lapack_dtype(dtype)
@@ -83,31 +84,30 @@ def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: fl
     data = xp.moveaxis(data, 2, 0)  # (D, 2R + 2, S)
     dim = data.shape[0]
     one = xp.concatenate([root_b, xp.zeros(n, work), xp.ones(2, work)])  # the constant
-    svd = functools.partial(jnp.linalg.svd, full_matrices=False)
+    svd = functools.partial(xp.linalg.svd, full_matrices=False)
     # The constant's output weights: least squares on the features.
-    u_a, s_a, vt_a = reduce(svd, data)
+    u_a, s_a, vt_a = svd(data)
     top = s_a[..., :1]
     keep = s_a > rtol * top
     inv_a = xp.where(keep, 1 / xp.where(keep, s_a, 1), 0)
-    alpha_one = reduce(functools.partial(jnp.einsum, "dks,dk->ds"), vt_a,
-                       inv_a * reduce(functools.partial(jnp.einsum, "dik,i->dk"), u_a, one))
+    alpha_one = xp.einsum("dks,dk->ds", vt_a, inv_a * xp.einsum("dik,i->dk", u_a, one))
     # The features with the constant projected out, orthonormalised.
     # Divisions by a broadcast value are written as XLA computes them (times the
     # reciprocal), so that the NumPy path rounds alike.
-    per_norm2 = 1 / reduce(jnp.dot, one, one)
-    along = reduce(functools.partial(jnp.einsum, "i,dis->ds"), one, data) * per_norm2  # (D, S)
+    per_norm2 = 1 / xp.dot(one, one)
+    along = xp.einsum("i,dis->ds", one, data) * per_norm2  # (D, S)
     rest = data - one[None, :, None] * along[:, None, :]
-    u, s, vt = reduce(svd, rest)
+    u, s, vt = svd(rest)
     m = rank - 1
     u, s, v = u[..., :m], s[..., :m], xp.swapaxes(vt, 1, 2)[..., :m]
     live = s > rtol * top
     inv = xp.where(live, 1 / xp.where(live, s, 1), 0)
     # Direction k is `features·w_k − (along·w_k)·1`; the weak ones are orthogonal to the
     # constant only to eps/s_k, so it is projected out once more (`γ_k` of the constant).
-    gamma = reduce(functools.partial(jnp.einsum, "i,dik->dk"), one, u) * per_norm2
+    gamma = xp.einsum("i,dik->dk", one, u) * per_norm2
     u = u - one[None, :, None] * gamma[:, None, :]
     weights_rest = v * inv[:, None, :]  # (D, S, m)
-    shift = reduce(functools.partial(jnp.einsum, "ds,dsk->dk"), along, weights_rest) + gamma
+    shift = xp.einsum("ds,dsk->dk", along, weights_rest) + gamma
     to_alpha = xp.concatenate(
         [alpha_one[:, :, None], weights_rest - alpha_one[:, :, None] * shift[:, None, :]],
         axis=2,
@@ -135,26 +135,3 @@ def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: fl
 def any_traced(*trees) -> bool:
     """Whether any leaf of `trees` is traced (else all are known when the step is traced)."""
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
-
-
-def _call(fn, *args):
-    return fn(*args)
-
-
-def _as_is(a):
-    return a
-
-
-def _eager_reduction(fn, *args):
-    """`fn(*args)` (an SVD or a contraction) run now by JAX, as NumPy arrays.
-
-    A span known when the step is traced is computed then, once. Evaluated by JAX operation
-    by operation, each operation is compiled on its own (some 80 of them, seconds of a
-    first call). Only its reductions need JAX for that: its other operations (elementwise
-    IEEE arithmetic, data movement) round alike in NumPy, which compiles nothing, so the
-    span is the same to the bit."""
-    # NumPy inputs placed as device arrays first: converted by `fn`, each would compile a
-    # conversion of its own
-    args = [jax.device_put(a) if isinstance(a, np.ndarray) else a for a in args]
-    with jax.ensure_compile_time_eval():
-        return jax.tree_util.tree_map(np.asarray, fn(*args))
