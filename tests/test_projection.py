@@ -709,3 +709,10 @@ def test_a_known_span_compiles_one_program():
         unregister_event_duration_listener(count)
     assert all(isinstance(leaf, jax.Array) for leaf in jax.tree_util.tree_leaves(span))
     assert len(compiles) == 1, len(compiles)
+    # computed while a step is traced, it is as concrete (a constant of the compiled step)
+    inside = []
+    jax.make_jaxpr(lambda q: inside.append(form.span(hidden, ctx)) or q)(ctx.q0)
+    for a, b in zip(jax.tree_util.tree_leaves(span), jax.tree_util.tree_leaves(inside[0]),
+                    strict=True):
+        assert not isinstance(b, jax.core.Tracer)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
