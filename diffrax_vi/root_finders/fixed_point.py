@@ -26,7 +26,7 @@ from jaxtyping import Array
 
 from ..lazy import unless_all_skip
 from ..precision import lapack_dtype
-from .newton import NewtonState, RoundoffNewton, _LoopLayout
+from .newton import NewtonState, RoundoffNewton
 from .step_hints import hints_of
 
 __all__ = ["FixedPointIteration"]
@@ -51,36 +51,6 @@ class _ChordState(NewtonState):
     fresh: Array
 
 
-
-class _PassState(_ChordState):
-    """`_ChordState` with what `_whole_solve`'s loops add: the point is a start still to be
-    evaluated (`pending`), a fresh matrix is due (`need`) and would be the solve's first
-    (`first`), and the fraction of the update the next pass tries after `halvings`."""
-
-    pending: Array
-    need: Array
-    first: Array
-    fraction: Array
-    halvings: Array
-
-    @classmethod
-    def starting(cls, state: _ChordState, dtype) -> _PassState:
-        yes = jnp.array(True)
-        return cls(*_fields(state), pending=yes, need=yes, first=yes,
-                   fraction=jnp.ones((), dtype), halvings=jnp.array(0, jnp.int32))
-
-    def chord(self) -> _ChordState:
-        return _ChordState(*_fields(self)[:len(dataclasses.fields(_ChordState))])
-
-
-def _fields(state) -> list:
-    return [getattr(state, f.name) for f in dataclasses.fields(state)]
-
-
-def _select(flag, a, b):
-    """`a` where `flag`, else `b`, leaf by leaf."""
-    return jax.tree_util.tree_map(lambda x, y: jnp.where(flag, x, y), a, b)
-
 def _factor(jac: Array, dtype, inverse: bool) -> tuple[Array, ...]:
     """`(J⁻¹,)` or the LU factors `(lu, pivots)` of `jac`, in the working precision (float32
     below 32 bits)."""
@@ -99,22 +69,6 @@ def _apply(factors: tuple[Array, ...], f: Array) -> Array:
     else:
         out = jax.scipy.linalg.lu_solve(factors, f.astype(work))
     return out.astype(f.dtype)
-
-
-def _where(flag, a, b):
-    """`a` where `flag`, else `b`: chosen when traced where `flag` is a Python bool."""
-    if flag is True:
-        return a
-    if flag is False:
-        return b
-    return jnp.where(flag, a, b)
-
-
-def _and(flag, a):
-    """`flag & a`, with a Python bool `flag` resolved when traced (`False` stays `False`)."""
-    if flag is False:
-        return False
-    return a if flag is True else flag & a
 
 
 class FixedPointIteration(RoundoffNewton):
@@ -239,9 +193,7 @@ class FixedPointIteration(RoundoffNewton):
         return jnp.where(factors[2], _apply(factors[1:2], f), kinetic)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del aux_struct, tags
-        if self._in_one_loop(options):
-            return self._unevaluated_state(y, f_struct)
+        del aux_struct, tags, f_struct
         f, _ = fn(y, args)
         flat = ravel_pytree(f)[0]
         dtype = ravel_pytree(y)[0].dtype
@@ -266,20 +218,17 @@ class FixedPointIteration(RoundoffNewton):
         return _ChordState(flat, inf, no, no, zero, zero, no, factors,
                            jnp.zeros((), flat.dtype), zero, jnp.array(True))
 
-    def _start_factors(self, fn, y, args, options, dtype, first=True) -> tuple[Array, ...]:
-        """The Jacobian's factors at `y`: at the start of a solve (`first`), the hint
-        `inverse` where the caller gives one (an explicit inverse computed its own, cheaper
-        way), with the pivoted factorisation where that gave non-finite entries; else, and
-        later in a solve (a restart, a refresh: points farther from the root), `_factor`.
-        `first` may be traced (one loop for the whole solve)."""
+    def _start_factors(self, fn, y, args, options, dtype) -> tuple[Array, ...]:
+        """The Jacobian's factors at the start of a solve: the hint `inverse` where the caller
+        gives one (an explicit inverse computed its own, cheaper way), with the pivoted
+        factorisation where that gave non-finite entries; else `_factor`."""
         given = hints_of(options).inverse
         jac = self._jacobian(fn, y, args, options)
-        if given is None or not self.inverse or first is False:
+        if given is None or not self.inverse:
             return _factor(jac, dtype, self.inverse)
         inverse = given(jac, y, args).astype(lapack_dtype(dtype))
         return unless_all_skip(
-            ~(first & jnp.all(jnp.isfinite(inverse))), lambda: _factor(jac, dtype, True),
-            (inverse,)
+            ~jnp.all(jnp.isfinite(inverse)), lambda: _factor(jac, dtype, True), (inverse,)
         )
 
     def _update(self, fn, y, args, options, state):
@@ -297,28 +246,8 @@ class FixedPointIteration(RoundoffNewton):
         d = -self._apply(state.factors, state.f, y)
         f_new, aux = residual(flat_y + d)
         a = jnp.ones((), dtype)
-        refreshing = self.refresh is not None
-        if refreshing:
+        if self.refresh is not None:
             a, f_new, aux = self._backtrack(residual, flat_y, d, state, a, f_new, aux, floor)
-        new, state, need, _ = self._advance(flat_y, state, d, a, f_new, refreshing, scale)
-        if refreshing:
-            # Each iteration pays for its test only: the refactorisation is a lazy branch.
-            factors = self._refactored(need, fn, unravel(new), args, options, state.factors,
-                                       dtype)
-            state = dataclasses.replace(state, factors=factors)
-        return unravel(new), state, aux
-
-    def _advance(self, flat_y, state, d, a, f_new, refreshing, scale):
-        """The iteration's state after the update `a d` from `flat_y`, whose residual is
-        `f_new`: the new point, the state (its factors unchanged), whether the matrix is due
-        to be formed afresh at that point, and whether the update was undone.
-
-        `refreshing` (a Python bool, or a traced flag in one loop for both tries) says
-        whether the rules of `refresh` apply: a stalled chord update undone, a slow or stalled
-        one followed by a fresh matrix."""
-        dtype = flat_y.dtype
-        floor = self._tolerance("floor", dtype) * scale
-        rho = self.refresh if self.refresh is not None else SECOND_TRY_REFRESH
         new = flat_y + a * d
         # the sizes the tests below need, in one reduction (one kernel in the loop)
         fmax, fmax_new, norm, size = jnp.max(
@@ -333,22 +262,28 @@ class FixedPointIteration(RoundoffNewton):
         # update (a Newton step of the refreshing variant need only lower the residual);
         # `max_stalls` stalls in a row end the solve.
         shrank = norm < state.step_norm
-        shrank = _where(refreshing, shrank | state.fresh, shrank)
+        if self.refresh is not None:
+            shrank = shrank | state.fresh
         stalled = ~near & ~(lower & shrank)
         stalls = jnp.where(stalled, state.stalls + 1, 0)
-        # A stalled chord update is undone and Newton's step taken from where the
-        # iteration stood; a slow one is kept, and the next starts from a fresh Jacobian.
-        chord_stall = _and(refreshing, stalled & ~state.fresh)
-        slow = _and(refreshing, ~near & ~stalled & (contraction > rho))
-        undo = _and(refreshing, stalled)
-        if undo is not False:
+        step_norm = norm
+        # (without `refresh` nothing reads `fresh`: passed on as it is, it costs no copy)
+        fresh = state.fresh if self.refresh is None else jnp.array(False)
+        factors, refreshes = state.factors, state.refreshes
+        need = None
+        if self.refresh is not None:
+            # A stalled chord update is undone and Newton's step taken from where the
+            # iteration stood; a slow one is kept, and the next starts from a fresh Jacobian.
+            chord_stall = stalled & ~state.fresh
+            slow = ~near & ~stalled & (contraction > self.refresh)
+            undo = stalled
             new = jnp.where(undo, flat_y, new)
             f_new = jnp.where(undo, state.f, f_new)
             fmax_new = jnp.where(undo, fmax, fmax_new)
             step_norm = jnp.where(undo, state.step_norm, norm)
             stalls = jnp.where(chord_stall, state.stalls, stalls)
-        else:
-            step_norm = norm
+            need = chord_stall | slow
+            fresh = state.fresh & undo
         converged = fmax_new <= self._tolerance("ftol", dtype) * scale
         if self.confirm:
             converged = converged & (norm <= float(jnp.finfo(dtype).eps) ** 0.5 * size)
@@ -359,16 +294,15 @@ class FixedPointIteration(RoundoffNewton):
         # Rounding has taken over once an update near the root is no smaller than the one
         # before it.
         at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)
-        need = _and(refreshing, (chord_stall | slow) & ~(converged | at_floor))
-        if need is False:
-            # (without `refresh` nothing reads `fresh`: passed on as it is, it costs no copy)
-            fresh, refreshes = state.fresh, state.refreshes
-        else:
-            fresh = _where(refreshing, (state.fresh & undo) | need, state.fresh)
-            refreshes = state.refreshes + jnp.asarray(need, jnp.int32)
+        if need is not None:
+            # Each iteration pays for its test only: the refactorisation is a lazy branch.
+            need = need & ~(converged | at_floor)
+            factors = self._refactored(need, fn, unravel(new), args, options, factors, dtype)
+            refreshes = refreshes + need.astype(jnp.int32)
+            fresh = fresh | need
         state = _ChordState(f_new, step_norm, converged, at_floor, stalls, iterations,
-                            state.restarted, state.factors, contraction, refreshes, fresh)
-        return new, state, need, undo
+                            state.restarted, factors, contraction, refreshes, fresh)
+        return unravel(new), state, aux
 
     def _backtrack(self, residual, flat_y, d, state, a, f_new, aux, floor):
         """`(a, F, aux)` of the update `a d`: a step with a Jacobian formed where it starts
@@ -432,144 +366,18 @@ class FixedPointIteration(RoundoffNewton):
 
         return unless_all_skip(need, refactor, factors)
 
-    # -- the whole solve in one loop (the Jacobian's chord iteration) ------------------------
-    def _in_one_loop(self, options) -> bool:
-        """Whether the solve runs as one loop (`_whole_solve`): the Jacobian's iteration,
-        given the iteration cap."""
-        return self.matrix == "jacobian" and hints_of(options).max_iterations is not None
-
-    def _unevaluated_state(self, y, f_struct) -> _ChordState:
-        """`init`'s state where `_whole_solve` runs the solve: nothing evaluated (its loop
-        evaluates the start), the shapes of what it will hold."""
-        flat = ravel_pytree(y)[0]
-        size, dtype = flat.shape[0], flat.dtype
-        f_leaves = jax.tree_util.tree_leaves(f_struct)
-        f_dtype = jnp.result_type(*(leaf.dtype for leaf in f_leaves)) if f_leaves else dtype
-        work = lapack_dtype(dtype)
-        square = jnp.zeros((size, size), work)
-        factors = (square,) if self.inverse else (square, jnp.zeros(size, jnp.int32))
-        zero, no = jnp.array(0, jnp.int32), jnp.array(False)
-        return _ChordState(jnp.zeros(size, f_dtype), jnp.full((), jnp.inf, f_dtype), no, no,
-                           zero, zero, no, factors, jnp.zeros((), f_dtype), zero,
-                           jnp.array(True))
-
-    def _whole_solve(self, fn, y, args, options, state, hints):
-        """The whole solve as loops in which each pass evaluates the residual once: at the
-        start (the given one, or the restart point), at an update, or at half the last one
-        (backtracking). An outer loop forms the matrix (at the start, a restart, a refresh)
-        and, where the first `first_try` updates have not converged, computes the restart
-        point (lazily); an inner loop makes the passes with that matrix. So the compiled
-        solve holds one copy each of the residual, the Jacobian and the restart point, and
-        the updates after a restart follow `refresh` (`SECOND_TRY_REFRESH` where none is
-        set): where the chord iteration could not contract from the first start, the second
-        try turns into Newton's method instead of failing again."""
-        if not self._in_one_loop(options):
-            return super()._whole_solve(fn, y, args, options, state, hints)
-        cap = hints.max_iterations
-        restart = hints.restart if hints.restart is not None and hints.restart[0] < cap else None
+    def _whole_solve_loop(self, fn, args, options, carry, limit):
+        """`RoundoffNewton._whole_solve_loop`; where the updates use only the start's matrix
+        (no `refresh`, the Jacobian), the loop carries the unknowns as one flat vector: no
+        flattening and unflattening of them on every update."""
+        if self.refresh is not None or self.matrix != "jacobian":
+            return super()._whole_solve_loop(fn, args, options, carry, limit)
+        y, state, aux = carry
         flat, unravel = ravel_pytree(y)
-        dtype = flat.dtype
-        scale = jnp.asarray(hints.scale, dtype)
-
-        def residual(v):
-            out, aux = fn(unravel(v), args)
-            return ravel_pytree(out)[0], aux
-
-        def restart_due(state):
-            if restart is None:
-                return jnp.array(False)
-            done, _ = self._ended(state)
-            return (~state.pending & ~state.restarted & ~(state.converged | state.at_floor)
-                    & (state.iterations < cap) & ((state.iterations >= restart[0]) | done))
-
-        def going_on(state):
-            done, _ = self._ended(state)
-            return state.pending | (~done & (state.iterations < cap))
-
-        def passes(v, state, aux):
-            """The inner loop: passes with the matrix `state.factors` until the solve ends,
-            or needs a fresh matrix or the restart."""
-            layout = _LoopLayout.of(state, ("factors",))
-
-            def cond(carry):
-                state = layout.unpack(carry[1], carry[2])
-                return going_on(state) & ~state.need & ~restart_due(state)
-
-            def body(carry):
-                state = layout.unpack(carry[1], carry[2])
-                v, state, aux = self._pass(residual, carry[0], state, carry[3], scale)
-                return (v, *layout.pack(state), aux)
-
-            v, rest, packed, aux = jax.lax.while_loop(cond, body, (v, *layout.pack(state), aux))
-            return v, layout.unpack(rest, packed), aux
-
-        layout = _LoopLayout.of(_PassState.starting(state, dtype), ())
-
-        def cond(carry):
-            state = layout.unpack(carry[1], carry[2])
-            return going_on(state) | restart_due(state)
-
-        def body(carry):
-            v, state, aux = carry[0], layout.unpack(carry[1], carry[2]), carry[3]
-            if restart is not None:
-                due = restart_due(state)
-                v = unless_all_skip(
-                    due, lambda: ravel_pytree(restart[1](args))[0].astype(dtype), v
-                )
-                state = dataclasses.replace(
-                    state, pending=state.pending | due, restarted=state.restarted | due,
-                    refreshes=state.refreshes + due.astype(state.refreshes.dtype),
-                )
-            # Every pass of this loop needs the matrix at `v` (the start, a restart, a
-            # refresh); under vmap, members that do not are masked by the loop.
-            factors = self._start_factors(fn, unravel(v), args, options, dtype, state.first)
-            state = dataclasses.replace(state, factors=factors, need=jnp.array(False),
-                                        first=jnp.array(False), fresh=jnp.array(True))
-            v, state, aux = passes(v, state, aux)
-            return (v, *layout.pack(state), aux)
-
-        aux = jax.tree_util.tree_map(
-            lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(lambda: fn(y, args)[1])
+        v, state, aux = super()._whole_solve_loop(
+            lambda v, args: fn(unravel(v), args), args, options, (flat, state, aux), limit
         )
-        start = _PassState.starting(state, dtype)
-        v, rest, packed, aux = jax.lax.while_loop(cond, body, (flat, *layout.pack(start), aux))
-        return unravel(v), layout.unpack(rest, packed).chord(), aux
-
-    def _pass(self, residual, v, state, aux, scale):
-        """One pass of `_whole_solve`'s inner loop: one residual, and the start, the halving
-        or the update it makes."""
-        dtype = v.dtype
-        floor = self._tolerance("floor", dtype) * scale
-        d = -_apply(state.factors, state.f)
-        x = jnp.where(state.pending, v, v + state.fraction * d)
-        f_x, aux_x = residual(x)
-        refreshing = True if self.refresh is not None else state.restarted
-        # a start: the residual there, fresh bookkeeping
-        started = dataclasses.replace(
-            state, f=f_x, step_norm=jnp.full_like(state.step_norm, jnp.inf),
-            converged=jnp.array(False), at_floor=jnp.array(False),
-            stalls=jnp.zeros_like(state.stalls), contraction=jnp.zeros_like(state.contraction),
-            fresh=jnp.array(True), pending=jnp.array(False),
-        )
-        # a halving: far from the root, Newton's update (from a matrix formed where it
-        # starts) that did not lower the residual is tried at half its length
-        fmax = jnp.max(jnp.abs(state.f))
-        enough = jnp.max(jnp.abs(f_x)) <= (1 - 1e-4 * state.fraction) * fmax
-        halve = (_and(refreshing, state.fresh & ~(fmax <= floor) & ~enough)
-                 & (state.halvings < self.max_backtracks) & ~state.pending)
-        halved = dataclasses.replace(state, fraction=state.fraction / 2,
-                                     halvings=state.halvings + 1)
-        # an update
-        new, chord, need, undo = self._advance(v, state.chord(), d, state.fraction, f_x,
-                                               refreshing, scale)
-        updated = _PassState(*_fields(chord), pending=state.pending, need=need,
-                             first=state.first, fraction=jnp.ones_like(state.fraction),
-                             halvings=jnp.zeros_like(state.halvings))
-        out = _select(state.pending, started, _select(halve, halved, updated))
-        v = jnp.where(state.pending | halve, v, new)
-        aux_update = _select(undo, aux, aux_x)
-        aux = _select(state.pending, aux_x, _select(halve, aux, aux_update))
-        return v, out, aux
+        return unravel(v), state, aux
 
     def _loop_constants(self) -> tuple[str, ...]:
         """Without `refresh`, the updates keep the start's matrix and its bookkeeping."""
@@ -577,19 +385,29 @@ class FixedPointIteration(RoundoffNewton):
             return ("restarted", "factors", "refreshes", "fresh")
         return super()._loop_constants()
 
+    def _second_try(self) -> FixedPointIteration:
+        """After a restart, the Jacobian's chord iteration goes on with `refresh`
+        (`SECOND_TRY_REFRESH` where none is set): an iteration that did not contract from
+        the first start turns into Newton's method from the second instead of failing
+        again."""
+        if self.matrix == "jacobian" and self.refresh is None:
+            return dataclasses.replace(self, refresh=SECOND_TRY_REFRESH)
+        return self
+
     def _restarted(self, fn, start, args, options, carry):
         """`carry` moved to the point `start`, with fresh bookkeeping and the iteration's
-        matrix formed and factorised there (the kinetic matrix's iteration; the Jacobian's
-        restarts within its one loop, `_whole_solve`)."""
+        matrix formed and factorised there."""
         point, newton, aux = super()._restarted(fn, start, args, options, carry)
         state = carry[1]
         dtype = newton.f.dtype
-        if self.refresh is None:
+        if self.matrix == "kinetic" and self.refresh is None:
             factors = (hints_of(options).kinetic(point, args),)
-        else:
+        elif self.matrix == "kinetic":
             # with `refresh`, the restart goes on with Newton's update, as a refresh does
             jac = self._jacobian(fn, point, args, options)
             factors = (state.factors[0], _factor(jac, dtype, True)[0], jnp.array(True))
+        else:
+            factors = _factor(self._jacobian(fn, point, args, options), dtype, self.inverse)
         chord = _ChordState(*(getattr(newton, f.name) for f in dataclasses.fields(newton)),
                             factors, jnp.zeros_like(state.contraction),
                             state.refreshes + 1, jnp.array(True))
