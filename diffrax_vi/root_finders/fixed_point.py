@@ -49,6 +49,7 @@ class _ChordState(NewtonState):
     contraction: Array
     refreshes: Array
     fresh: Array
+    due: Array  # `factors` are to be formed afresh at the point before the next update
 
 
 def _factor(jac: Array, dtype, inverse: bool) -> tuple[Array, ...]:
@@ -216,7 +217,7 @@ class FixedPointIteration(RoundoffNewton):
         zero = jnp.array(0, jnp.int32)
         no = jnp.array(False)
         return _ChordState(flat, inf, no, no, zero, zero, no, factors,
-                           jnp.zeros((), flat.dtype), zero, jnp.array(True))
+                           jnp.zeros((), flat.dtype), zero, jnp.array(True), no)
 
     def _start_factors(self, fn, y, args, options, dtype) -> tuple[Array, ...]:
         """The Jacobian's factors at the start of a solve: the hint `inverse` where the caller
@@ -243,6 +244,11 @@ class FixedPointIteration(RoundoffNewton):
             out, aux = fn(unravel(v), args)
             return ravel_pytree(out)[0], aux
 
+        if self.refresh is not None:
+            # Each iteration pays for its test only: the refactorisation, where the update
+            # before found it due (or a restart), is a lazy branch.
+            factors = self._refactored(state.due, fn, y, args, options, state.factors, dtype)
+            state = dataclasses.replace(state, factors=factors, due=jnp.array(False))
         d = -self._apply(state.factors, state.f, y)
         f_new, aux = residual(flat_y + d)
         a = jnp.ones((), dtype)
@@ -294,14 +300,14 @@ class FixedPointIteration(RoundoffNewton):
         # Rounding has taken over once an update near the root is no smaller than the one
         # before it.
         at_floor = near & (norm >= state.step_norm) & (fmax_new <= floor)
+        due = state.due
         if need is not None:
-            # Each iteration pays for its test only: the refactorisation is a lazy branch.
-            need = need & ~(converged | at_floor)
-            factors = self._refactored(need, fn, unravel(new), args, options, factors, dtype)
-            refreshes = refreshes + need.astype(jnp.int32)
-            fresh = fresh | need
+            # formed at the start of the next update (`due`)
+            due = need & ~(converged | at_floor)
+            refreshes = refreshes + due.astype(jnp.int32)
+            fresh = fresh | due
         state = _ChordState(f_new, step_norm, converged, at_floor, stalls, iterations,
-                            state.restarted, factors, contraction, refreshes, fresh)
+                            state.restarted, factors, contraction, refreshes, fresh, due)
         return unravel(new), state, aux
 
     def _backtrack(self, residual, flat_y, d, state, a, f_new, aux, floor):
@@ -382,7 +388,7 @@ class FixedPointIteration(RoundoffNewton):
     def _loop_constants(self) -> tuple[str, ...]:
         """Without `refresh`, the updates keep the start's matrix and its bookkeeping."""
         if self.refresh is None:
-            return ("restarted", "factors", "refreshes", "fresh")
+            return ("restarted", "factors", "refreshes", "fresh", "due")
         return super()._loop_constants()
 
     def _second_try(self) -> FixedPointIteration:
@@ -396,10 +402,13 @@ class FixedPointIteration(RoundoffNewton):
 
     def _restarted(self, fn, start, args, options, carry):
         """`carry` moved to the point `start`, with fresh bookkeeping and the iteration's
-        matrix formed and factorised there."""
+        matrix formed and factorised there: the Jacobian's by the first update after it
+        (`due`: the updates after a restart refresh, `_second_try`), so that the compiled
+        solve holds one copy of its refactorisation, not two."""
         point, newton, aux = super()._restarted(fn, start, args, options, carry)
         state = carry[1]
         dtype = newton.f.dtype
+        due = jnp.array(False)
         if self.matrix == "kinetic" and self.refresh is None:
             factors = (hints_of(options).kinetic(point, args),)
         elif self.matrix == "kinetic":
@@ -407,8 +416,8 @@ class FixedPointIteration(RoundoffNewton):
             jac = self._jacobian(fn, point, args, options)
             factors = (state.factors[0], _factor(jac, dtype, True)[0], jnp.array(True))
         else:
-            factors = _factor(self._jacobian(fn, point, args, options), dtype, self.inverse)
+            factors, due = state.factors, jnp.array(True)
         chord = _ChordState(*(getattr(newton, f.name) for f in dataclasses.fields(newton)),
                             factors, jnp.zeros_like(state.contraction),
-                            state.refreshes + 1, jnp.array(True))
+                            state.refreshes + 1, jnp.array(True), due)
         return point, chord, aux
