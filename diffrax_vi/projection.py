@@ -83,16 +83,16 @@ def _features_at(theta, basis: AbstractBasis, nodes: Array, dim: int, dtype):
 
 def _known_features(theta, basis: AbstractBasis, nodes, dim: int, dtype):
     """`_features_at` of inputs known when the step is traced, as NumPy arrays, by one
-    compiled program (operation by operation, each would compile on its own), run now even
-    while a step is being traced."""
+    compiled program (operation by operation, each would compile on its own), run now
+    (`VariableProjection.span` calls it in JAX's eager context, even while a step is being
+    traced)."""
     arrays, static = eqx.partition((theta, basis, nodes), eqx.is_array)
     try:
         hash(static)
         program = _features_program
     except TypeError:  # an ansatz with unhashable settings: compiled for this call
         program = jax.jit(_features_program.__wrapped__, static_argnums=(1, 2, 3))
-    with jax.core.eval_context():
-        out = program(arrays, static, dim, dtype)
+    out = program(arrays, static, dim, dtype)
     return jax.tree_util.tree_map(np.asarray, out)
 
 

@@ -92,8 +92,6 @@ def feature_span(value: Array, slope: Array, weights: Array, rank: int, rtol: fl
     inv_a = xp.where(keep, 1 / xp.where(keep, s_a, 1), 0)
     alpha_one = xp.einsum("dks,dk->ds", vt_a, inv_a * xp.einsum("dik,i->dk", u_a, one))
     # The features with the constant projected out, orthonormalised.
-    # Divisions by a broadcast value are written as XLA computes them (times the
-    # reciprocal), so that the NumPy path rounds alike.
     per_norm2 = 1 / xp.dot(one, one)
     along = xp.einsum("i,dis->ds", one, data) * per_norm2  # (D, S)
     rest = data - one[None, :, None] * along[:, None, :]
