@@ -14,8 +14,8 @@ from jaxtyping import Array
 
 from .precision import lapack_dtype
 
-__all__ = ["solve", "damped_least_squares", "dense_tangent_solve", "unpivoted_inverse",
-           "well_conditioned"]
+__all__ = ["solve", "damped_least_squares", "dense_tangent_solve", "elimination_solve",
+           "unpivoted_inverse", "well_conditioned"]
 
 
 def solve(matrix: Array, rhs: Array) -> Array:
@@ -23,6 +23,52 @@ def solve(matrix: Array, rhs: Array) -> Array:
     dtype = jnp.result_type(rhs)
     work = lapack_dtype(dtype)
     return jnp.linalg.solve(matrix.astype(work), rhs.astype(work)).astype(dtype)
+
+
+def elimination_solve(matrix: Array, rhs: Array) -> Array:
+    """`matrix⁻¹ rhs` (`rhs` a vector) by Gaussian elimination with partial pivoting, written
+    in elementwise operations and reductions only, in the dtype of `rhs`.
+
+    No LAPACK call and no matrix product: XLA's CPU backend compiles a loop free of such
+    calls (library calls, the dot library's fusions) whole when it is small enough
+    (`xla_cpu_small_while_loop_byte_threshold`), without a runtime dispatch per operation;
+    one of them anywhere in a step keeps every loop around it out of that. For the small,
+    rarely formed systems of a step (a fallback's Newton iteration). A singular matrix gives
+    non-finite entries, which the caller must check. Below 32 bits it works in float32, as
+    the factorisations do.
+    """
+    if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or rhs.shape != matrix.shape[:1]:
+        raise ValueError("elimination_solve needs a square matrix and a vector of its size, "
+                         f"got shapes {matrix.shape} and {rhs.shape}")
+    dtype = jnp.result_type(rhs)
+    work = lapack_dtype(dtype)
+    n = matrix.shape[0]
+    index = jnp.arange(n)
+
+    def eliminate(k, ab):
+        # the row of largest |entry| in column k, at or below row k, swapped with row k (by
+        # masks: no gather or scatter), then column k cleared below the diagonal
+        column = jax.lax.dynamic_index_in_dim(ab, k, 1, keepdims=False)
+        pivot_at = jnp.argmax(jnp.where(index >= k, jnp.abs(column), -1))
+        row_k = jax.lax.dynamic_index_in_dim(ab, k, 0, keepdims=False)
+        row_p = jnp.sum(jnp.where((index == pivot_at)[:, None], ab, 0), axis=0)
+        ab = jnp.where((index == k)[:, None], row_p,
+                       jnp.where((index == pivot_at)[:, None], row_k, ab))
+        column = jnp.where(index == k, row_p[k], jnp.where(index == pivot_at, row_k[k], column))
+        factors = jnp.where(index > k, column / row_p[k], 0)
+        return ab - factors[:, None] * row_p[None, :]
+
+    ab = jnp.concatenate([matrix.astype(work), rhs.astype(work)[:, None]], axis=1)
+    ab = jax.lax.fori_loop(0, n, eliminate, ab)
+    upper, b = ab[:, :n], ab[:, n]
+
+    def substitute(i, x):
+        k = n - 1 - i
+        row = jax.lax.dynamic_index_in_dim(upper, k, 0, keepdims=False)
+        value = (b[k] - jnp.sum(jnp.where(index > k, row * x, 0))) / row[k]
+        return jnp.where(index == k, value, x)
+
+    return jax.lax.fori_loop(0, n, substitute, jnp.zeros_like(b)).astype(dtype)
 
 
 def dense_tangent_solve(linear, rhs):

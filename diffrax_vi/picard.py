@@ -35,7 +35,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from .precision import lapack_dtype
+from .linalg import elimination_solve
 
 __all__ = [
     "KineticStructure", "PicardPlan", "PicardSolve", "extrapolation", "kinetic_structure",
@@ -222,8 +222,8 @@ def _combine(matrix: np.ndarray, values: Array, fused: bool = True) -> Array:
         m = jnp.asarray(constant, values.dtype)
         return jnp.sum(m[None, :, :] * values.T[:, None, :], axis=-1).T
 
-    if not fused:
-        return jnp.einsum("ij,jd->id", jnp.asarray(constant, values.dtype), values)
+    if not fused:  # no custom batching rule, and no `dot` (see `newton_solve`)
+        return product(values)
     apply = jax.custom_batching.custom_vmap(product)
 
     @apply.def_vmap
@@ -259,15 +259,19 @@ class PicardSolve(NamedTuple):
 
 
 class _Carry(NamedTuple):
-    z: tuple[Array, Array]
+    """The iteration's state, packed so that an update writes three arrays (each array a
+    loop carries is at least one kernel of its own per update, scalars included): the
+    unknowns `x = [δc; Δp]` (`(k + 1) × D`), the forces `f` at the nodes, and `stats`, the
+    scalars of the stopping rules in the order of `_STATS`, stored in the unknowns' dtype
+    (counts and flags are small integers, exact in any float)."""
+
+    x: Array
     f: Array
-    change: Array
-    rate: Array
-    residual: Array
-    growth: Array
-    updates: Array
-    converged: Array
-    done: Array
+    stats: Array
+
+
+_STATS = ("change", "rate", "residual", "growth", "updates", "converged", "done")
+_CHANGE, _RATE, _RESIDUAL, _GROWTH, _UPDATES, _CONVERGED, _DONE = range(len(_STATS))
 
 
 class _Kinetic(NamedTuple):
@@ -400,9 +404,7 @@ def newton_solve(structure: KineticStructure, ctx, span, start: PicardSolve,
     def correction(z, r, cont):
         jacobian = jax.jacfwd(flat_residual)(ravel_pytree(z)[0])
         rhs = ravel_pytree((r, cont))[0]
-        work = lapack_dtype(rhs.dtype)  # LAPACK has no float16
-        dz = jnp.linalg.solve(jacobian.astype(work), rhs.astype(work))
-        return unravel(-dz.astype(rhs.dtype))
+        return unravel(-elimination_solve(jacobian, rhs))
 
     end = _iterate(z0, f0, residual, correction, 0)
     solved = _solved(structure, ctx, span, None, end, g0, z0)
@@ -415,47 +417,53 @@ def _iterate(z0, f0, residual, correction, unrolled: int, plain: int = 0) -> _Ca
     nothing, the next `unrolled` have no test in between."""
     dtype = z0[1].dtype
     eps = float(jnp.finfo(dtype).eps)
-    tiny = jnp.finfo(dtype).tiny
+    tiny = float(jnp.finfo(dtype).tiny)
+    k = z0[0].shape[0]
+
+    def split(x):
+        return x[:k], x[k]
 
     def update(c: _Carry) -> _Carry:
-        (r, cont), f = residual(c.z)
-        dc, dp = correction(c.z, r, cont)
-        dz = jnp.concatenate([dc, dp[None]])
-        z = (c.z[0] + dc, c.z[1] + dp)
-        # the three sizes the tests need, in one reduction (one kernel)
-        delta, size, fsize = _max_abs(jnp.stack([
-            dz, jnp.concatenate([z[0], z[1][None]]), jnp.concatenate([r, cont[None]]),
-        ]))
+        z = split(c.x)
+        (r, cont), f = residual(z)
+        dc, dp = correction(z, r, cont)
+        dx = jnp.concatenate([dc, dp[None]])
+        x = c.x + dx
+        # the three sizes the tests need, in one kernel
+        delta, size, fsize = _max_abs(jnp.stack([dx, x, jnp.concatenate([r, cont[None]])]))
+        last = c.stats
         change = delta / jnp.maximum(size, tiny)
-        known = jnp.isfinite(c.change) & (c.change > 0)
-        rate = change / jnp.where(known, c.change, 1)
+        known = jnp.isfinite(last[_CHANGE]) & (last[_CHANGE] > 0)
+        rate = change / jnp.where(known, last[_CHANGE], 1)
         # the worse of the last two rates: the error has several modes, and a ratio taken as
         # a fast one dies out understates the slow one's (stopping one update early leaves an
         # error of the same sign on every step, an energy drift)
-        worst = jnp.maximum(rate, c.rate)
+        worst = jnp.maximum(rate, last[_RATE])
         predicted = known & (worst < 1) & (change * worst <= (1 - worst) * eps / PREDICT_MARGIN)
-        at_noise = (change <= NOISE * eps) & (change >= 0.5 * c.change)
+        at_noise = (change <= NOISE * eps) & (change >= 0.5 * last[_CHANGE])
         finite = jnp.isfinite(change)
         converged = ((change == 0) | predicted | at_noise) & finite
-        growing = (change > NOISE * eps) & (change >= c.change)
-        growth = jnp.where(growing, c.growth + 1, 0)
-        updates = c.updates + 1
+        growing = (change > NOISE * eps) & (change >= last[_CHANGE])
+        growth = jnp.where(growing, last[_GROWTH] + 1, 0)
+        updates = last[_UPDATES] + 1
         done = converged | ~finite | (growth > MAX_GROWTH) | (updates >= MAX_UPDATES)
-        rate = jnp.where(known, rate, jnp.inf)
-        return _Carry(z, f, change, rate, fsize, growth, updates, converged, done)
+        # one array, so that the scalars are one fused kernel rather than one each
+        stats = jnp.stack([change, jnp.where(known, rate, jnp.inf), fsize, growth, updates,
+                           converged, done]).astype(dtype)
+        return _Carry(x, f, stats)
 
-    inf = jnp.full((), jnp.inf, dtype)
-    zero = jnp.array(0, jnp.int32)
-    no = jnp.array(False)
     z, f = z0, f0
     for _ in range(plain):
         (r, cont), f = residual(z)
         dc, dp = correction(z, r, cont)
         z = (z[0] + dc, z[1] + dp)
-    carry = _Carry(z, f, inf, inf, inf, zero, jnp.array(plain, jnp.int32), no, no)
+    stats = np.zeros(len(_STATS))
+    stats[[_CHANGE, _RATE, _RESIDUAL]] = np.inf
+    stats[_UPDATES] = plain
+    carry = _Carry(jnp.concatenate([z[0], z[1][None]]), f, jnp.asarray(stats, dtype))
     for _ in range(unrolled):
         carry = update(carry)
-    return jax.lax.while_loop(lambda c: ~c.done, update, carry)
+    return jax.lax.while_loop(lambda c: c.stats[_DONE] == 0, update, carry)
 
 
 def _max_abs(x: Array) -> Array:
@@ -473,15 +481,19 @@ def _max_abs(x: Array) -> Array:
 def _solved(structure, ctx, span, kinetic: _Kinetic | None, end: _Carry, g0, z0
             ) -> PicardSolve:
     dtype = ctx.q0.dtype
+    k = z0[0].shape[0]
+    z = (end.x[:k], end.x[k])
+    stats = end.stats
     g = g0
     if structure.offset_moves:  # the offsets of the last curve, for the next step's start
         kinetic = kinetic or _kinetic(structure, ctx)
-        q, dq = _curve_at_nodes(span, end.z[0], ctx.q0)
+        q, dq = _curve_at_nodes(span, z[0], ctx.q0)
         p, _ = _momenta_and_forces(ctx, q, dq / ctx.h)
         g = p - kinetic.times_mass(dq / ctx.h)
-    failure = jnp.where(jnp.isfinite(end.change), jnp.where(end.growth > MAX_GROWTH, 1, 2), 0)
-    return PicardSolve(end.z, (end.f, g), end.updates, end.residual.astype(dtype),
-                       end.converged, failure, z0)
+    change = stats[_CHANGE]
+    failure = jnp.where(jnp.isfinite(change), jnp.where(stats[_GROWTH] > MAX_GROWTH, 1, 2), 0)
+    return PicardSolve(z, (end.f, g), stats[_UPDATES].astype(jnp.int32),
+                       stats[_RESIDUAL].astype(dtype), stats[_CONVERGED] != 0, failure, z0)
 
 
 def step_residual(plan: PicardPlan, ctx, z, fused: bool = True
