@@ -22,6 +22,10 @@ at least as accurate (both below 1e-14 counts as equal) and the ratio of its tim
         [--members 256] [--threads 2] [--only kepler henon_heiles ensemble] [--degrees 6 8]
         [--engine]
 
+XLA's CPU options come from the environment: with
+`XLA_FLAGS=--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000`
+a solve whose loop holds no library call is compiled whole (the benchmarks page).
+
 `--quick` is a smoke run (2 orbits, T = 10, 8 members over one orbit, one CGVI configuration
 per section); its time is mostly the compilation of the three CGVI solves.
 
@@ -142,6 +146,7 @@ def header(out: Out, argv) -> None:
     out(f"# jax {jax.__version__}, diffrax {diffrax.__version__}, heyoka "
         f"{getattr(hy, '__version__', '?')}; float64; one process; command: python -m "
         f"benchmarks.peers_side_by_side {' '.join(argv)}".rstrip())
+    out(f"# XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
 
 
 def table_header(out: Out) -> None:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import subprocess
 import sys
@@ -321,11 +322,23 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--fresh", type=int, default=5, help="0 skips the first calls")
     parser.add_argument("--only", choices=("steps", "sizes", "first-call"))
+    parser.add_argument(
+        "--whole-loops", type=int, default=0, metavar="BYTES",
+        help="let XLA's CPU backend compile a while loop whose one pass touches fewer than "
+             "BYTES bytes as one function (xla_cpu_small_while_loop_byte_threshold; XLA's "
+             "default is 1024): set in XLA_FLAGS before jax starts, for this process and "
+             "the first calls' processes",
+    )
     args = parser.parse_args()
+    if args.whole_loops:
+        option = ("--xla_backend_extra_options="
+                  f"xla_cpu_small_while_loop_byte_threshold={args.whole_loops}")
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + option).strip()
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    print(f"# jax {jax.__version__} on {jax.devices()[0].platform}")
+    print(f"# jax {jax.__version__} on {jax.devices()[0].platform}; "
+          f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
     if args.only in (None, "steps"):
         print("\n".join(step_costs(args)), flush=True)
     if args.only in (None, "sizes"):

@@ -402,13 +402,28 @@ def newton_solve(structure: KineticStructure, ctx, span, start: PicardSolve,
         return ravel_pytree(differentiable(unravel(x))[0])[0]
 
     def correction(z, r, cont):
-        jacobian = jax.jacfwd(flat_residual)(ravel_pytree(z)[0])
         rhs = ravel_pytree((r, cont))[0]
+        jacobian = _columnwise_jacobian(flat_residual, ravel_pytree(z)[0])
         return unravel(-elimination_solve(jacobian, rhs))
 
     end = _iterate(z0, f0, residual, correction, 0)
     solved = _solved(structure, ctx, span, None, end, g0, z0)
     return solved._replace(iterations=solved.iterations + start.iterations)
+
+
+def _columnwise_jacobian(fn, x: Array) -> Array:
+    """`∂fn/∂x` one column per pass of a loop (a forward derivative along each axis).
+    `jax.jacfwd` would batch the derivatives, and XLA's CPU backend compiles the batched
+    products of a span of more than a few directions as calls of its dot library, which keep
+    the solve's loop from being compiled whole (`linalg.elimination_solve`)."""
+    n = x.shape[0]
+    out = jax.eval_shape(fn, x)
+
+    def column(i, jacobian):
+        _, derivative = jax.jvp(fn, (x,), ((jnp.arange(n) == i).astype(x.dtype),))
+        return jax.lax.dynamic_update_slice(jacobian, derivative[:, None], (0, i))
+
+    return jax.lax.fori_loop(0, n, column, jnp.zeros((out.shape[0], n), out.dtype))
 
 
 def _iterate(z0, f0, residual, correction, unrolled: int, plain: int = 0) -> _Carry:

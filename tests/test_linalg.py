@@ -183,10 +183,10 @@ def test_elimination_solve_under_vmap_and_its_failures():
     rhs = rng.standard_normal((6, 5))
     batched = jax.vmap(elimination_solve)(jnp.asarray(matrices), jnp.asarray(rhs))
     looped = np.stack([elimination_solve(jnp.asarray(a), jnp.asarray(b))
-                       for a, b in zip(matrices, rhs)])
+                       for a, b in zip(matrices, rhs, strict=True)])
     np.testing.assert_allclose(np.asarray(batched), looped, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(np.asarray(batched), np.linalg.solve(matrices, rhs[..., None])[..., 0],
-                               rtol=1e-11, atol=1e-12)
+    expected = np.linalg.solve(matrices, rhs[..., None])[..., 0]
+    np.testing.assert_allclose(np.asarray(batched), expected, rtol=1e-11, atol=1e-12)
     assert not np.all(np.isfinite(np.asarray(elimination_solve(jnp.zeros((3, 3)), jnp.ones(3)))))
     with pytest.raises(ValueError, match="square matrix and a vector"):
         elimination_solve(jnp.ones((3, 2)), jnp.ones(3))
@@ -199,5 +199,6 @@ def test_elimination_solve_compiles_without_library_calls():
     (either keeps XLA's CPU backend from compiling a loop around it whole)."""
     from diffrax_vi.linalg import elimination_solve
 
-    text = jax.jit(elimination_solve).lower(jnp.ones((6, 6)) + jnp.eye(6), jnp.ones(6)).compile().as_text()
+    program = jax.jit(elimination_solve).lower(jnp.ones((6, 6)) + jnp.eye(6), jnp.ones(6))
+    text = program.compile().as_text()
     assert "custom-call" not in text and "kind=kCustom" not in text

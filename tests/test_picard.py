@@ -188,17 +188,19 @@ def test_a_step_it_cannot_contract_goes_to_newtons_iteration():
     assert failed.result != diffrax.RESULTS.successful
 
 
-def test_a_solve_on_the_engine_compiles_without_library_calls():
+@pytest.mark.parametrize("degree", [6, 9])
+def test_a_solve_on_the_engine_compiles_without_library_calls(degree):
     """A whole solve on the engine, its Newton fallback included, holds no LAPACK call and no
     product for the dot library (Kepler, whose Lagrangian has none of its own): XLA's CPU
     backend can then compile the solve's loop whole, without a runtime dispatch per
     operation, where `xla_cpu_small_while_loop_byte_threshold` lets it (the benchmarks
-    page). One such call anywhere in the step would keep the whole loop out of that."""
+    page). One such call anywhere in the step would keep the whole loop out of that. (At
+    degree 9 the fallback's Jacobian, formed as one batch of derivatives, had two.)"""
     problem = problems.kepler(eccentricity=0.5)
 
     def run(y0):
-        return diffrax.diffeqsolve(problem.term, dvi.CGVI(6, root_finder=ENGINE), 0.0, 1.0, 0.1,
-                                   y0, max_steps=16, saveat=diffrax.SaveAt(t1=True),
+        return diffrax.diffeqsolve(problem.term, dvi.CGVI(degree, root_finder=ENGINE), 0.0, 1.0,
+                                   0.1, y0, max_steps=16, saveat=diffrax.SaveAt(t1=True),
                                    throw=False).ys  # (`throw` adds a callback after the loop)
 
     text = jax.jit(run).lower(problem.y0).compile().as_text()
