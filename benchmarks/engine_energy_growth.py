@@ -7,7 +7,12 @@ chord iteration (`picard=False`, the default): largest relative energy error, th
 With several `--h`, each step size in turn: the exponent of one run depends on how the
 rounding falls at that step (measured 2026-11-29: from 0.2 to 1.0 over h in 0.4..0.53).
 
+`--random-walks N` first prints the same exponent for `N` random walks of as many steps
+(unit Gaussian increments): how far one run's exponent scatters where the growth is a
+random walk's.
+
     .venv/bin/python -m benchmarks.engine_energy_growth [--steps 1000000] [--h 0.5 0.47 ...]
+        [--random-walks 60]
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--h", type=float, nargs="+", default=[0.5])
+    parser.add_argument("--random-walks", type=int, default=0)
     args = parser.parse_args()
     import diffrax
     import jax
@@ -31,6 +37,16 @@ def main() -> None:
 
     problem = problems.harmonic_oscillator()
     n = args.steps
+    if args.random_walks:
+        rng = np.random.default_rng(0)
+        steps = np.arange(1, n + 1, dtype=np.float64)
+        found = np.array([
+            growth_exponent(steps, np.maximum.accumulate(np.abs(np.cumsum(rng.standard_normal(n)))))
+            for _ in range(args.random_walks)
+        ])
+        print(f"{args.random_walks} random walks of {n} steps: exponent mean {found.mean():.2f}, "
+              f"standard deviation {found.std():.2f}, from {found.min():.2f} to "
+              f"{found.max():.2f}; above 0.6 in {np.mean(found > 0.6):.0%}", flush=True)
     e0 = float(problem.energy(0.0, *problem.y0))
     for h, picard in ((h, picard) for h in args.h for picard in (True, False)):
         solver = dvi.CGVI(7, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True,
