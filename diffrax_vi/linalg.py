@@ -54,7 +54,7 @@ def elimination_solve(matrix: Array, rhs: Array) -> Array:
         row_p = jnp.sum(jnp.where((index == pivot_at)[:, None], ab, 0), axis=0)
         ab = jnp.where((index == k)[:, None], row_p,
                        jnp.where((index == pivot_at)[:, None], row_k, ab))
-        column = jnp.where(index == k, row_p[k], jnp.where(index == pivot_at, row_k[k], column))
+        column = jax.lax.dynamic_index_in_dim(ab, k, 1, keepdims=False)
         factors = jnp.where(index > k, column / row_p[k], 0)
         return ab - factors[:, None] * row_p[None, :]
 

@@ -215,14 +215,16 @@ def _combine(matrix: np.ndarray, values: Array, fused: bool = True) -> Array:
     how it runs: alone, as one fused multiply and a reduction over the minor axis (a `dot`
     of these sizes costs more in its call than in its arithmetic); under `vmap`, as one
     batched `dot` (where the fused form's reduction runs over a strided axis). `fused=False`
-    is the plain product, for what is differentiated (the layouts have no derivative rule)."""
+    keeps the multiply-reduce form under `vmap` too, for what is differentiated (the batching
+    rule has no derivative rule) and for loops that must hold no call of the dot library
+    (`newton_solve`)."""
     constant = np.asarray(matrix, np.float64)
 
     def product(values):
         m = jnp.asarray(constant, values.dtype)
         return jnp.sum(m[None, :, :] * values.T[:, None, :], axis=-1).T
 
-    if not fused:  # no custom batching rule, and no `dot` (see `newton_solve`)
+    if not fused:
         return product(values)
     apply = jax.custom_batching.custom_vmap(product)
 
