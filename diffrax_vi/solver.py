@@ -98,11 +98,13 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `seed`: where each step's solve starts, a `SeedPolicy` (its trajectory estimate, the fit
       of seed parameters to it, refits of the previous step's neurons). Default
       `SeedPolicy()`.
-    - `root_finder`: the per-step root finder. Default `None`: `RoundoffNewton()` for the
-      projected step (not confirming on a network's span), `LevenbergMarquardt()` for the
-      all-parameter steps. `FixedPointIteration` also serves the projected step. A plain
-      optimistix root finder gets none of the solver's options (residual scale, closed-form
-      Jacobian, fallback seed) and stops on absolute tolerances.
+    - `root_finder`: the per-step root finder. Default `None`: for the projected step
+      `RoundoffNewton(picard=True)` (not confirming on a network's span), which takes the
+      Jacobian-free iteration wherever the Lagrangian's kinetic matrix is constant and
+      Newton's method elsewhere; `LevenbergMarquardt()` for the all-parameter steps.
+      `FixedPointIteration` also serves the projected step. A plain optimistix root finder
+      gets none of the solver's options (residual scale, closed-form Jacobian, fallback
+      seed) and stops on absolute tolerances.
     - `root_find_max_steps`: iteration cap of one step's solve. Default 100.
     - `adjoint`: how `optimistix.root_find` differentiates a converged step; the default
       solves the implicit-function system by least squares.
@@ -147,7 +149,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 # benchmarks page has the figures); on a polynomial span it removes the
                 # first update's bias.
                 confirm = not isinstance(self.basis, ShallowNetBasis)
-                self.root_finder = RoundoffNewton(confirm=confirm)
+                self.root_finder = RoundoffNewton(confirm=confirm, picard=True)
             else:
                 self.root_finder = LevenbergMarquardt()
 
@@ -363,7 +365,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 return newton_solve(structure, ctx, span, picard, residual_and_forces,
                                    lambda z: step_residual(plan, ctx, z, fused=False))
 
-            solved = unless_all_skip(~picard.converged, fallback, picard)
+            restarted = jnp.array(False)
+            solved = picard
+            if traits_of(self.root_finder).picard_falls_back():
+                solved = unless_all_skip(~picard.converged, fallback, picard)
+                restarted = ~picard.converged
             result = diffrax.RESULTS.where(
                 solved.converged, diffrax.RESULTS.successful,
                 diffrax.RESULTS.where(
@@ -373,7 +379,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 ),
             )
             return solved.unknowns, (solved.values, solved.iterations, result, solved.residual,
-                                     ~picard.converged)
+                                     restarted)
 
         # The iteration runs on values without derivatives (the root's come below): nothing of
         # it is differentiated or kept for a derivative.

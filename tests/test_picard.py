@@ -16,6 +16,7 @@ jax.config.update("jax_enable_x64", True)
 
 CHORD = FixedPointIteration(ftol=0.0, predict=True, picard=False)
 ENGINE = FixedPointIteration(ftol=0.0, predict=True, picard=True)
+FALLBACK = FixedPointIteration(ftol=0.0, predict=True, picard=True, picard_fallback=True)
 
 MASS = jnp.array([[2.0, 0.3], [0.3, 1.0]])
 
@@ -82,16 +83,18 @@ def test_the_engine_is_chosen_only_where_it_applies():
     kepler = problems.kepler()
     assert _engine(dvi.CGVI(6, root_finder=ENGINE), kepler.term, kepler.y0, kepler.args) is not None
     assert _engine(dvi.CGVI(6, root_finder=CHORD), kepler.term, kepler.y0, kepler.args) is None
-    assert _engine(dvi.CGVI(6), kepler.term, kepler.y0, kepler.args) is None  # opt-in
-    pendulum = problems.double_pendulum()
-    solver = dvi.CGVI(6, root_finder=ENGINE)
-    assert _engine(solver, pendulum.term, pendulum.y0, pendulum.args) is None
-    # the default network step keeps its Newton root finder
+    # the defaults take it where it fits, decided when the step is traced
+    assert _engine(dvi.CGVI(6), kepler.term, kepler.y0, kepler.args) is not None
     network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))
-    assert _engine(network, kepler.term, kepler.y0, kepler.args) is None
-    fast_network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
-                                 root_finder=ENGINE)
-    assert _engine(fast_network, kepler.term, kepler.y0, kepler.args) is not None
+    assert _engine(network, kepler.term, kepler.y0, kepler.args) is not None
+    # and the chord or Newton iteration where it does not (a kinetic matrix that moves)
+    pendulum = problems.double_pendulum()
+    for solver in (dvi.CGVI(6, root_finder=ENGINE), dvi.CGVI(6), network):
+        assert _engine(solver, pendulum.term, pendulum.y0, pendulum.args) is None
+    # an explicit root finder without `picard` is respected
+    plain_network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
+                                  root_finder=dvi.RoundoffNewton(confirm=False))
+    assert _engine(plain_network, kepler.term, kepler.y0, kepler.args) is None
 
 
 # the mass-spring case here; each case's engine step: test_its_step_is_a_root_of_the_step_equations
@@ -166,26 +169,55 @@ def test_vmap_equals_the_loop():
             np.testing.assert_allclose(np.asarray(a[i]), np.asarray(b), rtol=1e-13, atol=1e-15)
 
 
+def _stiff_quartic(solver, stiffness, controller=None, max_steps=10):
+    term = dvi.LagrangianTerm(lambda t, q, v, k: 0.5 * v @ v - k * jnp.sum(q**4))
+    return diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.1,
+                               (jnp.array([1.0]), jnp.array([0.0])), args=stiffness,
+                               max_steps=max_steps, throw=False,
+                               stepsize_controller=controller or diffrax.ConstantStepSize(),
+                               saveat=diffrax.SaveAt(t1=True, solver_state=True))
+
+
 def test_a_step_it_cannot_contract_goes_to_newtons_iteration():
     # A stiff quartic spring at a long step: on some steps the Jacobian-free iteration does
-    # not contract; those steps are handed to Newton's iteration on the same equations (a
-    # restart), and the run ends where the chord iteration alone ends it. Stiffer still,
-    # Newton's iteration from that start fails too, and the run says so.
-    def go(solver, stiffness):
-        term = dvi.LagrangianTerm(lambda t, q, v, k: 0.5 * v @ v - k * jnp.sum(q**4))
-        return diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.1,
-                                   (jnp.array([1.0]), jnp.array([0.0])), args=stiffness,
-                                   max_steps=10, throw=False,
-                                   saveat=diffrax.SaveAt(t1=True, solver_state=True))
-
-    fast = go(dvi.CGVI(6, root_finder=ENGINE), 110.0)
-    chord = go(dvi.CGVI(6, root_finder=CHORD), 110.0)
+    # not contract; with `picard_fallback` those steps are handed to Newton's iteration on
+    # the same equations (a restart), and the run ends where the chord iteration alone ends
+    # it. Stiffer still, Newton's iteration from that start fails too, and the run says so.
+    fast = _stiff_quartic(dvi.CGVI(6, root_finder=FALLBACK), 110.0)
+    chord = _stiff_quartic(dvi.CGVI(6, root_finder=CHORD), 110.0)
     assert fast.result == chord.result == diffrax.RESULTS.successful
     assert int(fast.solver_state.restarts) > 0
     np.testing.assert_allclose(np.asarray(fast.ys[0]), np.asarray(chord.ys[0]),
                                rtol=0, atol=1e-12)
-    failed = go(dvi.CGVI(6, root_finder=ENGINE), 2500.0)
+    failed = _stiff_quartic(dvi.CGVI(6, root_finder=FALLBACK), 2500.0)
     assert failed.result != diffrax.RESULTS.successful
+
+
+def test_without_the_fallback_a_step_it_cannot_contract_fails_and_is_retried():
+    # The default: no Newton iteration inside the step. The step the iteration does not
+    # contract on fails loudly at a constant step, and `RetryFailedSteps` recovers it in
+    # smaller pieces: at least as accurate as the chord iteration's run at full steps,
+    # against Dopri8 at rtol 1e-13.
+    failed = _stiff_quartic(dvi.CGVI(6), 110.0)
+    assert failed.result != diffrax.RESULTS.successful
+    assert int(failed.solver_state.restarts) == 0
+    retried = _stiff_quartic(dvi.CGVI(6), 110.0, dvi.RetryFailedSteps(), max_steps=100)
+    chord = _stiff_quartic(dvi.CGVI(6, root_finder=CHORD), 110.0)
+    assert retried.result == diffrax.RESULTS.successful
+    term = dvi.LagrangianTerm(lambda t, q, v, k: 0.5 * v @ v - k * jnp.sum(q**4))
+    reference = diffrax.diffeqsolve(
+        term, diffrax.Dopri8(), 0.0, 1.0, 0.001, (jnp.array([1.0]), jnp.array([0.0])),
+        args=110.0, stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13),
+        max_steps=10_000, saveat=diffrax.SaveAt(t1=True)).ys[0]
+    retried_error = float(jnp.max(jnp.abs(retried.ys[0] - reference)))
+    assert retried_error <= float(jnp.max(jnp.abs(chord.ys[0] - reference)))
+
+
+def test_picard_fallback_needs_picard():
+    with pytest.raises(ValueError, match="picard_fallback"):
+        FixedPointIteration(picard_fallback=True)
+    with pytest.raises(TypeError, match="picard_fallback"):
+        dvi.RoundoffNewton(picard=True, picard_fallback=1)
 
 
 @pytest.mark.parametrize("degree", [6, 9])
@@ -199,7 +231,7 @@ def test_a_solve_on_the_engine_compiles_without_library_calls(degree):
     problem = problems.kepler(eccentricity=0.5)
 
     def run(y0):
-        return diffrax.diffeqsolve(problem.term, dvi.CGVI(degree, root_finder=ENGINE), 0.0, 1.0,
+        return diffrax.diffeqsolve(problem.term, dvi.CGVI(degree, root_finder=FALLBACK), 0.0, 1.0,
                                    0.1, y0, max_steps=16, saveat=diffrax.SaveAt(t1=True),
                                    throw=False).ys  # (`throw` adds a callback after the loop)
 

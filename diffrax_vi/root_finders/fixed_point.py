@@ -143,13 +143,8 @@ class FixedPointIteration(RoundoffNewton):
       rounding units of the unknowns is rounding noise, whose ratio to the update before
       says nothing of the rate: there the ratio before it is the rate, and the noise's size
       the update. Never after the first update. Default `False`.
-    - `picard`: where the projected step's Lagrangian has a constant kinetic matrix
-      `∂²L/∂v²` and its span is known when the step is traced (`CGVI`, a network's fixed
-      layer), iterate the forces at the nodes directly instead (`diffrax_vi.picard`: no
-      Jacobian at all), and Newton's iteration on the same equations where that does not
-      converge. Default `False`: a step on which neither converges fails (with a failure
-      result), where the iteration above, with the seed policy's restarts, still finds
-      roots of some stiff steps.
+    - `picard`, `picard_fallback`: as for `RoundoffNewton` (the Jacobian-free iteration
+      where it fits; default `False`, `CGVI`'s default sets `picard`).
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 
@@ -165,15 +160,11 @@ class FixedPointIteration(RoundoffNewton):
     inverse: bool = eqx.field(static=True, default=True)
     matrix: str = eqx.field(static=True, default="jacobian")
     predict: bool = eqx.field(static=True, default=False)
-    picard: bool = eqx.field(static=True, default=False)
-
-    def allows_picard(self) -> bool:
-        return self.picard
 
     def __check_init__(self):
         if self.matrix not in ("jacobian", "kinetic"):
             raise ValueError(f"matrix must be 'jacobian' or 'kinetic', got {self.matrix!r}")
-        for name in ("inverse", "predict", "picard"):
+        for name in ("inverse", "predict"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.refresh is not None and not (

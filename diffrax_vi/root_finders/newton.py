@@ -128,6 +128,18 @@ class RoundoffNewton(AbstractStepRootFinder):
       about one update per step; `False` skips it.
     - `max_backtracks`: halvings of the step in one line search. Default 20.
     - `max_stalls`: line searches in a row without decrease before giving up. Default 3.
+    - `picard`: where the projected step's Lagrangian has a constant kinetic matrix
+      `∂²L/∂v²` and its span is known when the step is traced (`CGVI`, a network's fixed
+      layer), solve the step by the Jacobian-free iteration on the forces at the nodes
+      instead (`diffrax_vi.picard`), which needs no Jacobian at all; elsewhere this root
+      finder runs as described above. Decided when the step is traced. Default `False`;
+      the default root finders of `CGVI` and of the projected `NetworkVI` set it.
+    - `picard_fallback`: where the Jacobian-free iteration does not converge, go on with
+      Newton's iteration on the same equations from the same start, inside the step.
+      Default `False`: such a step fails (`vi_step_stalled`, `vi_step_max_iterations`) and
+      the step-size controller recovers it (`RetryFailedSteps` at a constant step,
+      `PIDController` with an error estimate), as diffrax's implicit solvers do; the
+      fallback roughly doubles the compiled step and slows every step that converges.
     - `rtol`, `atol`, `norm`: unused; diffrax reads them off the root finder of an implicit
       solver.
     """
@@ -141,6 +153,8 @@ class RoundoffNewton(AbstractStepRootFinder):
     confirm: bool = eqx.field(static=True, default=True)
     max_backtracks: int = eqx.field(static=True, default=20)
     max_stalls: int = eqx.field(static=True, default=3)
+    picard: bool = eqx.field(static=True, default=False)
+    picard_fallback: bool = eqx.field(static=True, default=False)
     rtol: float | None = None
     atol: float | None = None
     norm: Callable = optx.max_norm
@@ -152,8 +166,12 @@ class RoundoffNewton(AbstractStepRootFinder):
                     and value >= least and math.isfinite(value)):
                 kind = "a non-negative" if least == 0 else "a positive"
                 raise ValueError(f"{name} must be {kind} number (of eps), got {value!r}")
-        if not isinstance(self.confirm, bool):
-            raise TypeError(f"confirm must be True or False, got {self.confirm!r}")
+        for name in ("confirm", "picard", "picard_fallback"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.picard_fallback and not self.picard:
+            raise ValueError("picard_fallback=True needs picard=True (it is the fallback of "
+                             "the Jacobian-free iteration)")
         if self.floor < self.ftol:
             raise ValueError(f"floor ({self.floor}) must be at least ftol ({self.ftol})")
         for name in ("max_backtracks", "max_stalls"):
@@ -163,6 +181,12 @@ class RoundoffNewton(AbstractStepRootFinder):
 
     def was_restarted(self, state: NewtonState) -> Array:
         return state.restarted
+
+    def allows_picard(self) -> bool:
+        return self.picard
+
+    def picard_falls_back(self) -> bool:
+        return self.picard_fallback
 
     def companion(self) -> optx.AbstractRootFinder:
         # the companion solves all the coefficients of a polynomial: a damped root finder

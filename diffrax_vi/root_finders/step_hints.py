@@ -132,6 +132,11 @@ class StepRootFinderTraits(eqx.Module):
         (`diffrax_vi.picard`) in its place."""
         return False
 
+    def picard_falls_back(self) -> bool:
+        """Whether a step the Jacobian-free iteration does not converge on goes on with
+        Newton's iteration (else it fails, for the step-size controller to retry)."""
+        return False
+
 
 class AbstractStepRootFinder(optx.AbstractRootFinder, StepRootFinderTraits):
     """An optimistix root finder that reads the solver's `StepHints` (`hints_of(options)`).
