@@ -20,11 +20,12 @@ at least as accurate (both below 1e-14 counts as equal) and the ratio of its tim
 
     .venv/bin/python -m benchmarks.peers_side_by_side [--quick] [--out FILE] [--repeats 5]
         [--members 256] [--threads 2] [--only kepler henon_heiles ensemble] [--degrees 6 8]
-        [--engine]
+        [--engine] [--whole-loops BYTES]
 
-XLA's CPU options come from the environment: with
-`XLA_FLAGS=--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000`
-a solve whose loop holds no library call is compiled whole (the benchmarks page).
+`--whole-loops 100000000` calls `diffrax_vi.compile_loops_whole(100000000)` before the first
+JAX computation: XLA's CPU backend then compiles a solve whose loop holds no library call as
+one function (the benchmarks page). The same comes from the environment, with
+`XLA_FLAGS=--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000`.
 
 `--quick` is a smoke run (2 orbits, T = 10, 8 members over one orbit, one CGVI configuration
 per section); its time is mostly the compilation of the three CGVI solves.
@@ -349,7 +350,15 @@ def main(argv=None) -> None:
                         default=("kepler", "henon_heiles", "ensemble"))
     parser.add_argument("--degrees", type=int, nargs="*", default=None,
                         help="only these CGVI degrees (none: no CGVI)")
+    parser.add_argument(
+        "--whole-loops", type=int, default=0, metavar="BYTES",
+        help="let XLA's CPU backend compile a while loop whose one pass touches fewer than "
+             "BYTES bytes as one function (dvi.compile_loops_whole(BYTES), before the first "
+             "JAX computation; a setting of this whole process)",
+    )
     args = parser.parse_args(argv)
+    if args.whole_loops:
+        dvi.compile_loops_whole(args.whole_loops)
     config = dict(QUICK if args.quick else FULL)
     if args.degrees is not None:
         keep = set(args.degrees)
