@@ -7,9 +7,6 @@ library never flips it.
 
 from . import oga as oga
 from . import problems as problems
-from ._explicit import BlanesMoan as BlanesMoan
-from ._explicit import Composition as Composition
-from ._explicit import StormerVerlet as StormerVerlet
 from ._xla_options import compile_loops_whole as compile_loops_whole
 from ._xla_options import loops_compiled_whole as loops_compiled_whole
 from .activations import elu as elu
@@ -97,10 +94,6 @@ __all__ = [
     "spectral_degree",
     "spectral_step_error",
     "RetryFailedSteps",
-    # Explicit symplectic solvers (separable Lagrangians)
-    "StormerVerlet",
-    "Composition",
-    "BlanesMoan",
     "compile_loops_whole",
     "loops_compiled_whole",
     # Terms and quadrature
