@@ -3,12 +3,12 @@
 Kepler (e = 0.5, float64), time per step of a whole jitted `diffeqsolve` with constant
 steps, alone and per member-step of a `vmap` over `--members` orbits (e in [0.1, 0.6]):
 
-- `CGVI(k)` with `FixedPointIteration(ftol=0, predict=True, picard=True)`: the
-  Jacobian-free iteration (`diffrax_vi.picard`) on this constant-mass Lagrangian;
-- the same with `picard=False` (the default): the chord iteration with the Jacobian formed
-  once per step;
+- `CGVI(k)` by default: the Jacobian-free iteration (`diffrax_vi.picard`) on this
+  constant-mass Lagrangian;
+- the same with `picard=False`: the chord iteration with the Jacobian formed once per step;
 - the default projected `NetworkVI` (tanh, `k + 1` neurons, Gauss–Legendre `k + 1`: the
-  same span dimension) with that engine, and with its default `RoundoffNewton`;
+  same span dimension; the same engine), with `FixedPointIteration(picard=True)`, and with
+  `RoundoffNewton` without the engine;
 - `diffrax.Dopri8` at `--dopri-rtol`;
 - the floor: a plain-JAX Gauss collocation step with `k + 1` stages, a fixed count of
   fixed-point updates (`--floor-updates`) and `lax.scan` over the steps (cost only: its
@@ -21,7 +21,7 @@ is read from a profile of one run and does not depend on the machine's load).
 Then the size of the program of a 10-step solve (`program_sizes`: jaxpr equations,
 optimised HLO instructions, while loops), and the first call of a fresh process (trace,
 compile and one run; no persistent compilation cache) of `CGVI(6)` (its default and the
-engine) and `NetworkVI` against `diffrax.Dopri8`'s on the same problem, double pendulum and
+chord iteration) and `NetworkVI` against `diffrax.Dopri8`'s on the same problem, double pendulum and
 Kepler, 10 steps each: `--fresh` runs, interleaved, medians and their ratios.
 
     .venv/bin/python -m benchmarks.step_floor [--degree 6] [--members 256] [--fresh 5]
@@ -139,16 +139,20 @@ def step_costs(args) -> list[str]:
     fpi = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
     width = degree + 1
     solvers = {
-        f"CGVI({degree}) engine": dvi.CGVI(degree, root_finder=fpi),
+        f"CGVI({degree}) default (engine)": dvi.CGVI(degree),
         f"CGVI({degree}) chord": dvi.CGVI(
             degree, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False)
         ),
-        f"NetworkVI(tanh {width}) engine": dvi.NetworkVI(
+        f"NetworkVI(tanh {width}) default": dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1)
+        ),
+        f"NetworkVI(tanh {width}) FPI engine": dvi.NetworkVI(
             dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1),
             root_finder=fpi,
         ),
         f"NetworkVI(tanh {width}) Newton": dvi.NetworkVI(
-            dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1)
+            dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1),
+            root_finder=dvi.RoundoffNewton(confirm=False),
         ),
     }
     lines = [f"# Kepler e = 0.5, h = 2pi/{args.steps_per_orbit}, {orbits} orbits alone, "
@@ -230,23 +234,24 @@ def _equations(jaxpr) -> int:
 def program_sizes(args) -> list[str]:
     """The size of the program of a 10-step solve (what its first call traces and compiles):
     equations of its jaxpr, instructions and while loops of XLA's optimised HLO. Beside the
-    default `CGVI(6)`: the same without the restart of a solve not converged in `FIRST_TRY`
-    updates (`root_find_max_steps=16`), which shows how much of the program the restart is,
-    and with `refresh` on both tries, so that one compiled loop of updates serves them."""
+    default `CGVI(6)` (the Jacobian-free iteration where the kinetic matrix is constant):
+    that with its Newton fallback compiled in, and the chord iteration with and without the
+    restart of a solve not converged in `FIRST_TRY` updates (`root_find_max_steps=16`)."""
     import diffrax
     import jax
 
     import diffrax_vi as dvi
     from diffrax_vi import problems
 
-    engine = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
+    fallback = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True,
+                                       picard_fallback=True)
+    chord = dvi.FixedPointIteration(ftol=0.0, predict=True)
     solvers = {
         "Dopri8": diffrax.Dopri8(),
         "CGVI(6)": dvi.CGVI(6),
-        "CGVI(6) engine": dvi.CGVI(6, root_finder=engine),
-        "CGVI(6) no restart": dvi.CGVI(6, root_find_max_steps=16),
-        "CGVI(6) one loop": dvi.CGVI(6, root_finder=dvi.FixedPointIteration(
-            ftol=0.0, predict=True, refresh=0.5)),
+        "CGVI(6) engine+fallback": dvi.CGVI(6, root_finder=fallback),
+        "CGVI(6) chord": dvi.CGVI(6, root_finder=chord),
+        "CGVI(6) chord no restart": dvi.CGVI(6, root_finder=chord, root_find_max_steps=16),
         "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
     }
     lines = ["# program of a 10-step solve: jaxpr equations, optimised HLO instructions, "
@@ -275,9 +280,9 @@ import diffrax, diffrax_vi as dvi
 from diffrax_vi import problems
 name, which = sys.argv[1], sys.argv[2]
 problem = getattr(problems, name)()
-engine = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
+chord = dvi.FixedPointIteration(ftol=0.0, predict=True)
 solver = {"Dopri8": diffrax.Dopri8(), "CGVI(6)": dvi.CGVI(6),
-          "CGVI(6) engine": dvi.CGVI(6, root_finder=engine),
+          "CGVI(6) chord": dvi.CGVI(6, root_finder=chord),
           "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))}[which]
 h = float(problem.dt)
 t0 = time.perf_counter()
@@ -292,7 +297,7 @@ def first_calls(args) -> list[str]:
     lines = [f"# first call in a fresh process (trace + compile + run, 10 steps), median of "
              f"{args.fresh} interleaved runs"]
     for problem in ("double_pendulum", "kepler"):
-        times = {which: [] for which in ("Dopri8", "CGVI(6)", "CGVI(6) engine", "NetworkVI")}
+        times = {which: [] for which in ("Dopri8", "CGVI(6)", "CGVI(6) chord", "NetworkVI")}
         for _ in range(args.fresh):
             for which in times:
                 out = subprocess.run(
@@ -331,9 +336,10 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.whole_loops:
-        option = ("--xla_backend_extra_options="
-                  f"xla_cpu_small_while_loop_byte_threshold={args.whole_loops}")
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + option).strip()
+        # Merged into XLA_FLAGS (the first calls' processes inherit it), before jax starts.
+        from diffrax_vi import compile_loops_whole
+
+        compile_loops_whole(args.whole_loops)
     import jax
 
     jax.config.update("jax_enable_x64", True)
