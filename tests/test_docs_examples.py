@@ -37,6 +37,7 @@ NOT_RUN_MARK = re.compile(r"^<!-- not run: (\S[^\n]*?) -->[ \t]*$")
 # (page, index of the Python block on the page, counting from 1) of every block marked not run.
 NOT_RUN = {
     ("how-to/choosing.md", 7),  # sets JAX's persistent cache directory for the whole process
+    ("how-to/choosing.md", 8),  # compile_loops_whole: XLA_FLAGS, read once per process
     ("how-to/ensembles.md", 4),  # jax.distributed.initialize needs a cluster's coordinator
     ("how-to/scaling-out.md", 2),  # starts a Dask cluster (tests/test_bench_executor.py does)
     ("how-to/scaling-out.md", 3),  # needs a Slurm cluster
