@@ -7,6 +7,9 @@ library never flips it.
 
 from . import oga as oga
 from . import problems as problems
+from ._explicit import BlanesMoan as BlanesMoan
+from ._explicit import Composition as Composition
+from ._explicit import StormerVerlet as StormerVerlet
 from ._xla_options import compile_loops_whole as compile_loops_whole
 from ._xla_options import loops_compiled_whole as loops_compiled_whole
 from .activations import elu as elu
@@ -94,6 +97,10 @@ __all__ = [
     "spectral_degree",
     "spectral_step_error",
     "RetryFailedSteps",
+    # Explicit symplectic solvers (separable Lagrangians)
+    "StormerVerlet",
+    "Composition",
+    "BlanesMoan",
     "compile_loops_whole",
     "loops_compiled_whole",
     # Terms and quadrature
