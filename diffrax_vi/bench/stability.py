@@ -85,8 +85,9 @@ INITIAL_GUESSES = {
 }
 # The all-parameter solves' root finders (the reference's two solvers)...
 DAMPED = {"LevenbergMarquardt": LevenbergMarquardt, "RegularisedNewton": RegularisedNewton}
-# ...and the projected step: `VariableProjection()` on its default hidden layer, solved by its
-# own `RoundoffNewton` (no λ, no reference convergence test).
+# ...and the projected step: `VariableProjection()` on its default hidden layer, solved by
+# `NetworkVI`'s default root finder for it (`RoundoffNewton`, taking the Jacobian-free
+# iteration where the kinetic matrix is constant; no λ, no reference convergence test).
 PROJECTED = {"projection": RoundoffNewton}
 SOLVERS = {**DAMPED, **PROJECTED}
 PROBLEMS = {
@@ -189,7 +190,7 @@ class StabilityCase:
                 GaussLegendre(self.nodes),
                 seed=SeedPolicy(initial_trajectory=INITIAL_GUESSES[self.initial_guess]()),
                 formulation=VariableProjection(),
-                root_finder=PROJECTED[self.solver](),
+                root_finder=None,  # the default step's
                 root_find_max_steps=self.max_iterations,
             )
         lam = self.lam_value if lam is None else lam
