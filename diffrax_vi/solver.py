@@ -226,6 +226,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         check_times(t0=t0, t1=t1)
         t0 = refuse_nonfinite_times(t0, t1)
         ctx = self.step_context(terms, t0, t1, y0, args)
+        from ._kinetic_check import refuse_degenerate_start  # a start no step can solve
+        ctx = refuse_degenerate_start(ctx)  # its `t` reaches `report.t`, as the times' check
         seed = self.seeder.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
         node_values = (jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2
