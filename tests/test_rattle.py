@@ -226,6 +226,31 @@ def test_without_a_force_the_step_is_the_constrained_galerkin_step_of_degree_one
     assert np.max(np.abs(np.asarray(sol.ys[1][-1]) - np.asarray(p))) < 1e-13
 
 
+def test_a_constant_momentum_offset_leaves_the_motion_unchanged():
+    # L + aᵀv with a constant a adds the total derivative d(aᵀq)/dt: the same motion, with
+    # p = v + a; the step is told the offset
+    problem = problems.spherical_pendulum()
+    a = jnp.array([0.3, -0.5, 0.2])
+    term = dvi.LagrangianTerm(lambda t, q, v, args: problem.term.lagrangian(t, q, v, args)
+                              + a @ v, constraint=problem.term.holonomic_constraint)
+
+    @jax.jit
+    def run(q, p):
+        def body(carry, k):
+            q1, p1, ok = rattle_step(term, 0.05 * k, 0.05, *carry[:2], None, None, 20,
+                                     offset=a)
+            return (q1, p1, carry[2] & ok), None
+
+        return jax.lax.scan(body, (q, p, jnp.array(True)), jnp.arange(40.0))[0]
+
+    q0, p0 = problem.y0
+    q, p, ok = run(q0, p0 + a)
+    q_plain, p_plain, _, _, _ = _run(problem, 40, 0.05)
+    assert bool(ok)
+    assert np.max(np.abs(np.asarray(q) - np.asarray(q_plain))) < 1e-13
+    assert np.max(np.abs(np.asarray(p - a) - np.asarray(p_plain))) < 1e-13
+
+
 # -- through diffeqsolve: StormerVerlet (one RATTLE step) and its compositions -----------------
 
 
