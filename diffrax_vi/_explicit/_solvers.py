@@ -202,14 +202,15 @@ class AbstractSplittingSolver(diffrax.AbstractAdaptiveSolver):
                              "constraints (RATTLE is not available); integrate it with "
                              "diffrax_vi.CGVI") from error
         dtype = q0.dtype
-        minv = jnp.eye(q0.size, dtype=dtype) if kin.minv is None else kin.minv
+        minv = kin.minv
 
         def run(t_start, h, q, p):
             ok, tau = jnp.asarray(True), 0.0
             for gamma in gammas:
                 t_stage = jnp.asarray(t_start + tau * h, dtype)
-                q, p, ok_stage = rattle_step(term, t_stage, as_dtype(gamma, dtype) * jnp.asarray(
-                    h, dtype), q, p, args, minv, self.constraint_iterations)
+                step = as_dtype(gamma, dtype) * jnp.asarray(h, dtype)
+                q, p, ok_stage = rattle_step(term, t_stage, step, q, p, args, minv,
+                                             self.constraint_iterations, offset=kin.offset)
                 ok, tau = ok & ok_stage, tau + gamma
             return q, p, ok
 
