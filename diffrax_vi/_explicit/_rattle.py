@@ -15,8 +15,9 @@ with `f = ∂L/∂q + F` the term's whole force (`F` a non-conservative force), 
 `ν` is found by Newton's iteration on its `M_c` unknowns alone (its matrix is
 `h G(q₁) M⁻¹ G(q)ᵀ`), to round-off; `μ` then solves one linear system with the matrix
 `G(q₁) M⁻¹ G(q₁)ᵀ`. Where the force reads the velocity (damping), the second kick is
-implicit in `p₁` and `(p₁, μ)` are found by Newton's iteration instead (exact after one
-update for a force linear in `v`).
+implicit in `p₁`: `p₁` is the fixed point of the kick followed by that projection, found by
+iterating it (one force evaluation and one small solve an update; it contracts at the rate
+`(h/2) |∂F/∂v M⁻¹|`).
 
 Reading the force at the start's velocity in the first kick and at the end's in the second
 makes the step symmetric: the step of `−h` from `(q₁, p₁)` swaps the two kicks and returns
@@ -72,27 +73,19 @@ def _small_solve(matrix: Array, rhs: Array) -> Array:
     return a[:, n:].reshape(rhs.shape).astype(dtype)
 
 
-def _newton(residual: Callable, start: Array, size_of: Callable, max_iterations,
-            chord: bool = False) -> tuple[Array, Array]:
-    """Newton's iteration on `residual` from `start` until an update is at round-off:
-    `(x, converged)`. With `chord`, the matrix is the Jacobian at `start` throughout (the
-    chord iteration: exact after one update for a residual linear in `x`, and cheaper per
-    update where the Jacobian is the costly part).
+def _iterate(update_of: Callable, start: Array, size_of: Callable, max_iterations,
+             noise: float) -> tuple[Array, Array]:
+    """`x ← x − update_of(x)` from `start` until an update is at round-off:
+    `(x, converged)`.
 
     An update counts as round-off when its size (`size_of(update)`, relative to the state)
-    is a few ulps, or when it stopped halving below `sqrt(eps)` (where a converging iteration
-    would at least square it, so what is left is rounding). A non-finite update stops the
-    iteration, unconverged; so does the cap `max_iterations`.
+    is a few ulps, or when it stopped halving below `noise` (relative): there a converging
+    iteration would have shrunk it, so what is left is rounding. A non-finite update stops
+    the iteration, unconverged; so does the cap `max_iterations`.
     """
     dtype = start.dtype
     eps = float(jnp.finfo(dtype).eps)
-    tiny, floor = jnp.asarray(_STOP * eps, dtype), jnp.asarray(eps ** 0.5, dtype)
-
-    def jacobian(x):
-        return jax.jacfwd(lambda y: (residual(y),) * 2, has_aux=True)(x)
-
-    if chord:
-        inverse = _small_solve(jacobian(start)[0], jnp.eye(start.shape[0], dtype=dtype))
+    tiny, floor = jnp.asarray(_STOP * eps, dtype), jnp.asarray(noise, dtype)
 
     def cond(carry):
         _, k, _, _, stopped = carry
@@ -100,10 +93,7 @@ def _newton(residual: Callable, start: Array, size_of: Callable, max_iterations,
 
     def body(carry):
         x, k, previous, _, _ = carry
-        if chord:
-            update = inverse @ residual(x)
-        else:
-            update = _small_solve(*jacobian(x))
+        update = update_of(x)
         x = x - update
         size = size_of(update)
         finite = jnp.isfinite(size)
@@ -116,22 +106,35 @@ def _newton(residual: Callable, start: Array, size_of: Callable, max_iterations,
     return x, converged
 
 
+def _newton(residual: Callable, start: Array, size_of: Callable, max_iterations
+            ) -> tuple[Array, Array]:
+    """Newton's iteration on `residual` (`_iterate`). Below `sqrt(eps)` an update that does
+    not halve is rounding: Newton's would at least square it."""
+
+    def update_of(x):
+        matrix, value = jax.jacfwd(lambda y: (residual(y),) * 2, has_aux=True)(x)
+        return _small_solve(matrix, value)
+
+    noise = float(jnp.finfo(start.dtype).eps) ** 0.5
+    return _iterate(update_of, start, size_of, max_iterations, noise)
+
+
 def _tangent_solve(linear: Callable, rhs: Array) -> Array:
     # The linearised equations at the root, formed densely (only where a derivative is taken).
     return solve(jax.jacfwd(linear)(jnp.zeros_like(rhs)), rhs)
 
 
-def _root(residual: Callable, start: Array, size_of: Callable, max_iterations,
-          chord: bool = False) -> tuple[Array, Array]:
-    """The root of `residual` by `_newton`, differentiated by the implicit function theorem
-    (the iteration itself is not differentiated)."""
+def _root(residual: Callable, start: Array, find: Callable) -> tuple[Array, Array]:
+    """The root of `residual` found by `find(residual, start) -> (x, converged)`,
+    differentiated by the implicit function theorem (the iteration itself is not)."""
 
-    def find(f, guess):
-        x, converged = _newton(f, guess, size_of, max_iterations, chord)
+    def solve_root(f, guess):
+        x, converged = find(f, guess)
         # as a float: custom_root gives its auxiliary output a tangent of its own dtype
         return x, converged.astype(guess.dtype)
 
-    x, converged = jax.lax.custom_root(residual, start, find, _tangent_solve, has_aux=True)
+    x, converged = jax.lax.custom_root(residual, start, solve_root, _tangent_solve,
+                                       has_aux=True)
     return x, jax.lax.stop_gradient(converged) > 0
 
 
@@ -141,19 +144,38 @@ def _reads_velocity(term) -> bool:
     return getattr(term, "nonconservative_force", True) is not None
 
 
+# A fixed-point update within this many ulps that stopped halving is rounding noise.
+_NOISE = 64.0
+
+
 def _second_kick(term, t1, h, q1, p_half, args, velocity, linear, max_iterations,
                  reads_velocity: bool) -> tuple[Array, Array]:
     """`(p₁, settled)`: the second half kick at `q₁` and the impulse `μ` that puts `p₁` on
-    the hidden constraint. One linear solve where the force does not read the velocity;
-    the chord iteration on `(p₁, μ)` where it does."""
+    the hidden constraint, `μ = (G M⁻¹ Gᵀ)⁻¹ (G M⁻¹ p̂ + ∂g/∂t)` for the kicked momentum
+    `p̂`: one linear solve where the force does not read the velocity.
+
+    Where it does, `p₁` is the fixed point of that map with the force read at `M⁻¹ p₁`: it
+    contracts at the rate `(h/2) |∂F/∂v M⁻¹|`, small wherever the step resolves the
+    force's time scale (as an explicit method needs to be accurate), and each update costs
+    one evaluation of the force, no Jacobian. An iteration that does not contract is not
+    settled."""
     g1 = term.constraint_jacobian(t1, q1, args)
     rate = term.constraint_rate(t1, q1, args)
     half = h / 2
+    schur = g1 @ linear(g1.T)  # G M⁻¹ Gᵀ
+    if reads_velocity:  # formed once for all the updates
+        inverse = _small_solve(schur, jnp.eye(schur.shape[0], dtype=schur.dtype))
+        schur_solve = lambda r: inverse @ r  # noqa: E731
+    else:
+        schur_solve = lambda r: _small_solve(schur, r)  # noqa: E731
+
+    def project(p1_guess):
+        kicked = p_half + half * term.force(t1, q1, velocity(p1_guess), args)
+        mu = schur_solve(g1 @ velocity(kicked) + rate)
+        return kicked - g1.T @ mu, mu
+
     if not reads_velocity:
-        kicked = p_half + half * term.force(t1, q1, velocity(p_half), args)
-        schur = g1 @ linear(g1.T)
-        mu = _small_solve(schur, g1 @ velocity(kicked) + rate)
-        return kicked - g1.T @ mu, jnp.array(True)
+        return project(p_half)[0], jnp.array(True)
     d = q1.shape[0]
 
     def balance(x):
@@ -162,12 +184,19 @@ def _second_kick(term, t1, h, q1, p_half, args, velocity, linear, max_iterations
         kick = p1 - p_half - half * term.force(t1, q1, v1, args) + g1.T @ mu
         return jnp.concatenate([kick, g1 @ v1 + rate])
 
-    scale = 1 + jnp.max(jnp.abs(jax.lax.stop_gradient(p_half)))
+    frozen = jax.lax.stop_gradient(p_half)
+    scale = 1 + jnp.max(jnp.abs(frozen))
+    eps = float(jnp.finfo(q1.dtype).eps)
+
+    def find(_, guess):
+        def update_of(x):
+            return x - jnp.concatenate(project(x[:d]))
+
+        return _iterate(update_of, guess, lambda u: jnp.max(jnp.abs(u[:d])) / scale,
+                        max_iterations, _NOISE * eps)
+
     start = jnp.concatenate([p_half, jnp.zeros_like(rate)])
-    # the chord iteration: exact after one update for a force linear in the velocity, and
-    # then confirmed by one evaluation of the force instead of a second Jacobian
-    x, settled = _root(balance, start, lambda u: jnp.max(jnp.abs(u[:d])) / scale,
-                       max_iterations, chord=True)
+    x, settled = _root(balance, start, find)
     return x[:d], settled
 
 
@@ -228,7 +257,8 @@ def rattle_step(term, t, h, q: Array, p: Array, args, minv: Array | None,
     def moved(nu_update):  # how far an update of ν moves q₁, relative to q
         return jnp.max(jnp.abs(frozen[3] * linear(frozen[2].T @ nu_update))) / q_scale
 
-    nu, found = _root(on_constraint, jnp.zeros(g0.shape[0], dtype), moved, max_iterations)
+    nu, found = _root(on_constraint, jnp.zeros(g0.shape[0], dtype),
+                      lambda f, guess: _newton(f, guess, moved, max_iterations))
     p_half = kicked - g0.T @ nu
     q1 = q + h * velocity(p_half)
     p1, settled = _second_kick(term, t1, h, q1, p_half, args, velocity, linear,
