@@ -69,22 +69,23 @@ def blind_directions(blocks, basis: np.ndarray, tol: float) -> np.ndarray:
 
 def _blocks(term, static):
     """`(t, q, v, dynamic) ↦ (∂ϑ/∂v, ∂ϑ/∂q, ∂f/∂v, ∂f/∂q)`, the term's arrays and `args` as
-    `dynamic`."""
+    `dynamic`. Each block is its own derivative, so that what each one reads can be told
+    apart (one Jacobian of both arguments would read everything for every block)."""
 
-    def blocks(t, q, v, dynamic):
+    def blocks(t, q, v, dynamic, which=(0, 1, 2, 3)):
         term_, args_ = eqx.combine(dynamic, static)
-        (tq, tv), (fq, fv) = jax.jacfwd(
-            lambda q_, v_: term_.momentum_and_force(t, q_, v_, args_), argnums=(0, 1)
-        )(q, v)
-        return tv, tq, fv, fq
+        momentum = lambda q_, v_: term_.momentum(t, q_, v_, args_)
+        force = lambda q_, v_: term_.force(t, q_, v_, args_)
+        maps = ((momentum, 1), (momentum, 0), (force, 1), (force, 0))
+        return tuple(jax.jacfwd(maps[i][0], argnums=maps[i][1])(q, v) for i in which)
 
     return blocks
 
 
 def _reads(fn, inputs) -> list[tuple[bool, bool, bool]]:
-    """For each output of `fn(*inputs)`: whether it reads `t`, `q`, `v`, or any other input
-    (dead-code elimination of its program: structural, a dependence that cancels still
-    counts)."""
+    """For each output of `fn(t, q, v, dynamic)`: whether it reads `q`, whether it reads `v`,
+    and whether it reads any input (dead-code elimination of its program: structural, a
+    dependence that cancels still counts)."""
     from jax._src.interpreters import partial_eval as pe
 
     closed = jax.make_jaxpr(fn)(*inputs)
@@ -145,19 +146,25 @@ def _constant_values(blocks, inputs, which: list[int]) -> dict[int, np.ndarray]:
         return {}
     with jax.ensure_compile_time_eval():
         zeros = jax.tree_util.tree_map(lambda a: np.zeros(a.shape, a.dtype), inputs)
-        values = jax.jit(lambda *a: [blocks(*a)[i] for i in which])(*zeros)
+        values = jax.jit(lambda *a: blocks(*a, which=tuple(which)))(*zeros)
     return {i: np.asarray(value, np.float64) for i, value in zip(which, values, strict=True)}
 
 
-def _blind_at_start(ctx, blocks, dynamic, runtime: list[int], candidates: np.ndarray,
-                    tol: float) -> Array:
+def _blind_at_start(ctx, blocks, dynamic, known: dict, runtime: list[int],
+                    candidates: np.ndarray, tol: float) -> Array:
     """Whether, at the start, the blocks of index `runtime` also map some direction in the
     span of `candidates` to zero (each block relative to its norm)."""
     t = jnp.asarray(ctx.t)
-    zero = jnp.zeros_like(ctx.q0)
-    mass = jax.lax.stop_gradient(blocks(t, ctx.q0, zero, dynamic)[0])
+    # The kinetic matrix reads no velocity (else nothing is checked): one evaluation serves.
+    mass = known.get(0)
+    if mass is None:
+        mass = blocks(t, ctx.q0, jnp.zeros_like(ctx.q0), dynamic, which=(0,))[0]
+    mass = jax.lax.stop_gradient(jnp.asarray(mass, ctx.q0.dtype))
     v0 = _start_velocity(ctx, mass)
-    values = jax.lax.stop_gradient(blocks(t, ctx.q0, v0, dynamic))
+    later = tuple(i for i in runtime if i != 0)
+    values = dict(zip(later, jax.lax.stop_gradient(blocks(t, ctx.q0, v0, dynamic, which=later)),
+                      strict=True))
+    values[0] = mass
     work = lapack_dtype(ctx.q0.dtype)
     basis = jnp.asarray(candidates, work)
     rows = []
@@ -204,7 +211,7 @@ def refuse_degenerate_start(ctx):
         reads = _reads(blocks, inputs)
     except Exception:  # a term that cannot be traced apart: not checked, never wrong
         return ctx
-    if reads[0][1]:  # a kinetic matrix that depends on the velocity: not checked
+    if reads[0][1]:  # a kinetic matrix whose program reads the velocity: not checked
         return ctx
     constant = [i for i, r in enumerate(reads) if not r[2]]
     known = _constant_values(blocks, inputs, constant)
@@ -214,5 +221,5 @@ def refuse_degenerate_start(ctx):
     runtime = [i for i in range(len(NAMES)) if i not in known]
     if not runtime:
         _refuse_now(candidates)
-    blind = _blind_at_start(ctx, blocks, dynamic, runtime, candidates, tol)
+    blind = _blind_at_start(ctx, blocks, dynamic, known, runtime, candidates, tol)
     return eqx.tree_at(lambda c: c.t, ctx, eqx.error_if(t, blind, DEGENERATE_START_MESSAGE))
