@@ -41,6 +41,7 @@ from jaxtyping import Array
 
 from ..linalg import solve
 from ..precision import lapack_dtype
+from ._structure import force_reads_velocity
 
 __all__ = ["rattle_step"]
 
@@ -138,10 +139,13 @@ def _root(residual: Callable, start: Array, find: Callable) -> tuple[Array, Arra
     return x, jax.lax.stop_gradient(converged) > 0
 
 
-def _reads_velocity(term) -> bool:
-    """Whether the force of `term` may read the velocity: only a `LagrangianTerm` without a
-    non-conservative force is known not to (the caller has checked that `∂L/∂q` does not)."""
-    return getattr(term, "nonconservative_force", True) is not None
+def _reads_velocity(term, t, q, args) -> bool:
+    """Whether the force of `term` may read the velocity: a `LagrangianTerm`'s external
+    force, read from its program (`∂L/∂q` does not: the caller has checked it); any other
+    term's force may."""
+    if not hasattr(term, "nonconservative_force"):
+        return True
+    return force_reads_velocity(term, t, q, args)
 
 
 # A fixed-point update within this many ulps that stopped halving is rounding noise.
@@ -221,14 +225,14 @@ def rattle_step(term, t, h, q: Array, p: Array, args, minv: Array | None,
       `G(t, q) v + ∂g/∂t = 0`.
     - `args`: the term's `args`.
     - `minv`: `M⁻¹` as a `(D, D)` array in `q`'s dtype, or `None` for the identity.
-    - `max_iterations`: the cap on the updates of each Newton iteration of the step (an
+    - `max_iterations`: the cap on the updates of each iteration of the step (an
       `int`, or an integer array: it may be traced).
     - `offset`: the constant momentum offset `a = ∂L/∂v` at `v = 0` (`p = Mv + a`); `None`
       for zero.
 
     **Returns:** `q₁`, `p₁` and `ok`, a scalar boolean array: `True` where the start was on
     both constraint levels (within `sqrt(eps)` of the state's size, as
-    `diffrax_vi.holonomic` asks) and every Newton iteration converged to round-off, with a
+    `diffrax_vi.holonomic` asks) and every iteration of the step converged to round-off, with a
     finite end state. `False` where the constraint could not be reached (a step too long for
     the constraint manifold, an iteration cap too small), or the start is off it.
     """
@@ -262,7 +266,7 @@ def rattle_step(term, t, h, q: Array, p: Array, args, minv: Array | None,
     p_half = kicked - g0.T @ nu
     q1 = q + h * velocity(p_half)
     p1, settled = _second_kick(term, t1, h, q1, p_half, args, velocity, linear,
-                               max_iterations, _reads_velocity(term))
+                               max_iterations, _reads_velocity(term, t, q, args))
 
     start = jax.lax.stop_gradient(jnp.stack([
         jnp.max(jnp.abs(term.constraint_values(t, q, args))),
