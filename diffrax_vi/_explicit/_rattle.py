@@ -75,14 +75,17 @@ def _small_solve(matrix: Array, rhs: Array) -> Array:
 
 
 def _iterate(update_of: Callable, start: Array, size_of: Callable, max_iterations,
-             noise: float) -> tuple[Array, Array]:
+             noise: float, contraction: bool = False) -> tuple[Array, Array]:
     """`x ← x − update_of(x)` from `start` until an update is at round-off:
     `(x, converged)`.
 
     An update counts as round-off when its size (`size_of(update)`, relative to the state)
     is a few ulps, or when it stopped halving below `noise` (relative): there a converging
-    iteration would have shrunk it, so what is left is rounding. A non-finite update stops
-    the iteration, unconverged; so does the cap `max_iterations`.
+    iteration would have shrunk it, so what is left is rounding. With `contraction` (a
+    linearly converging iteration) the state also counts as converged once the error left
+    after an update, `size ρ / (1 − ρ)` for the rate `ρ = size / previous` of the last two,
+    is a few ulps: this saves the updates that would only confirm it. A non-finite update
+    stops the iteration, unconverged; so does the cap `max_iterations`.
     """
     dtype = start.dtype
     eps = float(jnp.finfo(dtype).eps)
@@ -98,7 +101,12 @@ def _iterate(update_of: Callable, start: Array, size_of: Callable, max_iteration
         x = x - update
         size = size_of(update)
         finite = jnp.isfinite(size)
-        converged = finite & ((size <= tiny) | ((size >= previous / 2) & (size <= floor)))
+        converged = (size <= tiny) | ((size >= previous / 2) & (size <= floor))
+        if contraction:
+            left = size * size / (previous - size)  # size ρ / (1 − ρ), ρ = size / previous
+            converged = converged | (jnp.isfinite(previous) & (size < previous / 2)
+                                     & (left <= tiny))
+        converged = converged & finite
         return x, k + 1, size, converged, converged | ~finite
 
     no = jnp.array(False)
@@ -197,7 +205,7 @@ def _second_kick(term, t1, h, q1, p_half, args, velocity, linear, max_iterations
             return x - jnp.concatenate(project(x[:d]))
 
         return _iterate(update_of, guess, lambda u: jnp.max(jnp.abs(u[:d])) / scale,
-                        max_iterations, _NOISE * eps)
+                        max_iterations, _NOISE * eps, contraction=True)
 
     start = jnp.concatenate([p_half, jnp.zeros_like(rate)])
     x, settled = _root(balance, start, find)
