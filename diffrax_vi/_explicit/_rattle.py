@@ -54,13 +54,11 @@ def _small_solve(matrix: Array, rhs: Array) -> Array:
     pivoting, unrolled (the size is known when traced), in the dtype of `rhs` (float32 below
     32 bits).
 
-    The step's systems are small (`M_c`, or `D + M_c` with a velocity-dependent force), and
-    their pivots stay away from zero: `h G(q₁) M⁻¹ G(q)ᵀ` and `G M⁻¹ Gᵀ` are (near)
-    definite for independent constraints, and in `[[I − (h/2) ∂F/∂v M⁻¹, Gᵀ], [G M⁻¹, 0]]`
-    the leading block is near the identity, after which the trailing block is its Schur
-    complement `−G M⁻¹ (…)⁻¹ Gᵀ`. At these sizes a few fused rank-one updates are several
-    times faster than a LAPACK call on a CPU. A zero pivot gives non-finite values, which
-    the step reports as not ok.
+    The step's systems are small (`M_c × M_c`) and their pivots stay away from zero:
+    `h G(q₁) M⁻¹ G(q)ᵀ` and `G M⁻¹ Gᵀ` are (near) definite for independent constraints. At
+    these sizes a few fused rank-one updates are several times faster than a LAPACK call on
+    a CPU. A zero pivot (dependent constraints) gives non-finite values, which the step
+    reports as not ok.
     """
     dtype = rhs.dtype
     work = lapack_dtype(dtype)
