@@ -98,10 +98,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `seed`: where each step's solve starts, a `SeedPolicy` (its trajectory estimate, the fit
       of seed parameters to it, refits of the previous step's neurons). Default
       `SeedPolicy()`.
-    - `root_finder`: the per-step root finder. Default `None`: for the projected step
-      `RoundoffNewton(picard=True)` (not confirming on a network's span), which takes the
-      Jacobian-free iteration wherever the Lagrangian's kinetic matrix is constant and
-      Newton's method elsewhere; `LevenbergMarquardt()` for the all-parameter steps.
+    - `root_finder`: the per-step root finder. Default `None`: `RoundoffNewton()` for the
+      projected step (not confirming on a network's span), `LevenbergMarquardt()` for the
+      all-parameter steps; `picard=True` on either of the first two takes the Jacobian-free
+      iteration where the Lagrangian's kinetic matrix is constant.
       `FixedPointIteration` also serves the projected step. A plain optimistix root finder
       gets none of the solver's options (residual scale, closed-form Jacobian, fallback
       seed) and stops on absolute tolerances.
@@ -149,7 +149,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 # benchmarks page has the figures); on a polynomial span it removes the
                 # first update's bias.
                 confirm = not isinstance(self.basis, ShallowNetBasis)
-                self.root_finder = RoundoffNewton(confirm=confirm, picard=True)
+                self.root_finder = RoundoffNewton(confirm=confirm)
             else:
                 self.root_finder = LevenbergMarquardt()
 

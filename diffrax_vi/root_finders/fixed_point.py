@@ -144,7 +144,7 @@ class FixedPointIteration(RoundoffNewton):
       says nothing of the rate: there the ratio before it is the rate, and the noise's size
       the update. Never after the first update. Default `False`.
     - `picard`, `picard_fallback`: as for `RoundoffNewton` (the Jacobian-free iteration
-      where it fits; default `False`, `CGVI`'s default sets `picard`).
+      where it fits, default `False`; its Newton fallback, default `True`).
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 

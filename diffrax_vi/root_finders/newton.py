@@ -132,14 +132,14 @@ class RoundoffNewton(AbstractStepRootFinder):
       `∂²L/∂v²` and its span is known when the step is traced (`CGVI`, a network's fixed
       layer), solve the step by the Jacobian-free iteration on the forces at the nodes
       instead (`diffrax_vi.picard`), which needs no Jacobian at all; elsewhere this root
-      finder runs as described above. Decided when the step is traced. Default `False`;
-      the default root finders of `CGVI` and of the projected `NetworkVI` set it.
+      finder runs as described above. Decided when the step is traced. Default `False`.
     - `picard_fallback`: where the Jacobian-free iteration does not converge, go on with
-      Newton's iteration on the same equations from the same start, inside the step.
-      Default `False`: such a step fails (`vi_step_stalled`, `vi_step_max_iterations`) and
-      the step-size controller recovers it (`RetryFailedSteps` at a constant step,
-      `PIDController` with an error estimate), as diffrax's implicit solvers do; the
-      fallback roughly doubles the compiled step and slows every step that converges.
+      Newton's iteration on the same equations from the same start, inside the step
+      (default `True`). `False`: such a step fails (`vi_step_stalled`,
+      `vi_step_max_iterations`) and the step-size controller recovers it
+      (`RetryFailedSteps` at a constant step, `PIDController` with an error estimate), as
+      diffrax's implicit solvers do: the fallback roughly doubles the compiled step and
+      slows every step that converges.
     - `rtol`, `atol`, `norm`: unused; diffrax reads them off the root finder of an implicit
       solver.
     """
@@ -154,7 +154,7 @@ class RoundoffNewton(AbstractStepRootFinder):
     max_backtracks: int = eqx.field(static=True, default=20)
     max_stalls: int = eqx.field(static=True, default=3)
     picard: bool = eqx.field(static=True, default=False)
-    picard_fallback: bool = eqx.field(static=True, default=False)
+    picard_fallback: bool = eqx.field(static=True, default=True)
     rtol: float | None = None
     atol: float | None = None
     norm: Callable = optx.max_norm
@@ -169,9 +169,6 @@ class RoundoffNewton(AbstractStepRootFinder):
         for name in ("confirm", "picard", "picard_fallback"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        if self.picard_fallback and not self.picard:
-            raise ValueError("picard_fallback=True needs picard=True (it is the fallback of "
-                             "the Jacobian-free iteration)")
         if self.floor < self.ftol:
             raise ValueError(f"floor ({self.floor}) must be at least ftol ({self.ftol})")
         for name in ("max_backtracks", "max_stalls"):
