@@ -51,7 +51,8 @@ __all__ = [
     "VISE",
 ]
 
-_SOLVER_OPTIONS = {"root_finder", "root_find_max_steps", "adjoint", "compensated"}
+_SOLVER_OPTIONS = {"root_finder", "root_find_max_steps", "adjoint", "compensated",
+                   "energy_check"}
 # Accepted for compatibility; dense output is the continuous converged curve and nothing
 # prints inside a compiled solve, so these have no effect.
 _NO_EFFECT = {"record_grid_points", "show_status"}

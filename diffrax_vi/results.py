@@ -6,7 +6,8 @@ be taken at all, one for a converged all-parameter network step whose end state 
 off the primary constraint of a Lagrangian linear in the velocities (by more than `eps ** 0.5`
 relative to `1 + max(|q_n|, |p_n|)`, and 100 times as far as at the run's first step; see
 `diffrax_vi.degenerate`), one for a step that cannot meet the term's holonomic constraints
-(`diffrax_vi.holonomic`):
+(`diffrax_vi.holonomic`), one for a converged step of a conserved energy whose energy jumped
+far past the method's error (a wrong root of the step's equations; `NetworkVI.energy_check`):
 
 | member | `failure_kind` | meaning |
 |---|---|---|
@@ -17,6 +18,7 @@ relative to `1 + max(|q_n|, |p_n|)`, and 100 times as far as at the run's first 
 | `RESULTS.vi_step_size_invalid` | `"step_size"` | the step is zero or not finite (a zero `dt0`) |
 | `RESULTS.vi_constraint_drift` | `"constraint_drift"` | end state off `p = ϑ(q)` (first order) |
 | `RESULTS.vi_constraint_unmet` | `"constraint_unmet"` | holonomic constraint `g = 0` not met |
+| `RESULTS.vi_step_energy_jump` | `"energy_jump"` | converged, but the energy jumped: a wrong root |
 
 diffrax's own failures have kinds too (`"max_steps"`, `"max_rejected"`, `"dt_min"`), and so do
 the results of optimistix and lineax (a divergent root find is `"diverged"`); see `FAILURE_KINDS`.
@@ -104,6 +106,14 @@ _MESSAGES = {
         "independent gradients). The largest drift so far is in "
         "sol.solver_state.holonomic_drift." + _WHERE
     ),
+    "vi_step_energy_jump": (
+        "diffrax_vi: the nonlinear solve of a step converged, but the energy of its end state "
+        "differs from that of its start by more than the method's error allows (a conserved "
+        "energy: the solve found a wrong root of the step's equations, as it can at steps "
+        "near the motion's time scale). Take smaller steps, or "
+        "stepsize_controller=diffrax_vi.RetryFailedSteps() to retry such steps in pieces "
+        "(energy_check=False turns the check off)." + _WHERE
+    ),
 }
 
 
@@ -128,6 +138,7 @@ FAILURE_KINDS = {
     "vi_step_size_invalid": "step_size",
     "vi_constraint_drift": "constraint_drift",
     "vi_constraint_unmet": "constraint_unmet",
+    "vi_step_energy_jump": "energy_jump",
     # diffrax's own failures: the step budget, the step size controller.
     "max_steps_reached": "max_steps",
     "max_steps_rejected": "max_rejected",
@@ -173,7 +184,8 @@ def failure_kind(result) -> str | np.ndarray:
     `"stalled"`, `"nonfinite"`, `"singular"`, and `"diverged"` (optimistix's divergence);
     `"step_size"` (a zero or non-finite step); `"constraint_drift"` (a first-order
     Lagrangian's step off its primary constraint); `"constraint_unmet"` (a holonomic
-    constraint not met); diffrax's `"max_steps"` (the step budget ran
+    constraint not met); `"energy_jump"` (a converged step whose conserved energy jumped: a
+    wrong root); diffrax's `"max_steps"` (the step budget ran
     out), `"max_rejected"` and `"dt_min"` (adaptive steps); `"other"` for anything else.
 
     Accepts a `diffrax.RESULTS` or `optimistix.RESULTS` member (e.g. `sol.result`), concrete,
@@ -227,6 +239,10 @@ class StepReport(eqx.Module):
       and 100 times its value at the run's first step, the all-parameter step of a network
       fails (`RESULTS.vi_constraint_drift`); for the other steps, whose roots are isolated,
       it is the step's truncation error.
+    - `energy_jump`: where the energy check applies (`NetworkVI.energy_check`), the step's
+      `|H₁ − H₀|` relative to its start's energy scale `|p₀·v₀| + |L₀|`; 0 where it does
+      not. Above `diffrax_vi._energy_check.JUMP_TOLERANCE` the step fails
+      (`RESULTS.vi_step_energy_jump`).
     """
 
     t: Array
@@ -236,6 +252,7 @@ class StepReport(eqx.Module):
     iterations: Array
     result: diffrax.RESULTS
     constraint: Array
+    energy_jump: Array
 
 
 def describe_failure(sol: diffrax.Solution) -> str | None:
@@ -245,6 +262,8 @@ def describe_failure(sol: diffrax.Solution) -> str | None:
     (the solve needs `SaveAt(..., solver_state=True)`; without it the line says so):
 
     - a failed step: its interval, the residual where its solve stopped and the tolerance;
+    - a step that converged to a wrong root (`"energy_jump"`): its interval and its energy
+      change relative to the energy's scale at its start;
     - a step that could not start because its start state is not finite (at `t0`: `y0` has a
       NaN or inf): says so, instead of blaming the Lagrangian or the step. This is read from
       the tolerance of `diffrax_vi`'s root finders, which scales with the start state; an
@@ -308,6 +327,13 @@ def describe_failure(sol: diffrax.Solution) -> str | None:
             f"to an end state {constraint:.3e} (relative) off the primary constraint "
             f"p = dL/dv(q). {message}"
         )
+    if kind == "energy_jump":
+        return (
+            f"{kind}: step {step} converged (residual {residual:.3e}, {iterations} iterations) "
+            f"but its energy changed by {float(report.energy_jump):.3e} times the energy's "
+            f"scale at its start (|p·v| + |L|; at most "
+            f"{_energy_jump_tolerance():g} is the method's error). {message}"
+        )
     bound = (
         f"tolerance {tolerance:.3e}"
         if np.isfinite(tolerance)
@@ -317,3 +343,9 @@ def describe_failure(sol: diffrax.Solution) -> str | None:
         f"{kind}: step {step} stopped at residual {residual:.3e} ({bound}) after "
         f"{iterations} iterations. {message}"
     )
+
+
+def _energy_jump_tolerance() -> float:
+    from ._energy_check import JUMP_TOLERANCE  # not at import: it imports the terms
+
+    return JUMP_TOLERANCE

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
 
+from . import _energy_check
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .companion import companion_error
@@ -116,6 +117,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
       reports an infinite error, so the controller retries it smaller.
     - `compensated`: add the projected step's increments to the state by compensated
       summation, carrying the rounding in `NetworkVIState.compensation`. Default `True`.
+    - `energy_check`: fail a converged step whose energy jumped far past the method's error
+      (a wrong root of the step's equations, `RESULTS.vi_step_energy_jump`), where the
+      energy is conserved: a `LagrangianTerm` that does not read the time and has no
+      non-conservative force (`diffrax_vi._energy_check`). Default `True`.
     """
 
     basis: AbstractBasis
@@ -130,6 +135,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     error_estimate: int | None = eqx.field(static=True, default=None)
     iteration_log: int = eqx.field(static=True, default=0)
     compensated: bool = eqx.field(static=True, default=True)
+    energy_check: bool = eqx.field(static=True, default=True)
 
     term_structure: ClassVar = AbstractMechanicalTerm
 
@@ -255,6 +261,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 iterations=zero,
                 result=diffrax.RESULTS.successful,
                 constraint=jnp.zeros((), ctx.q0.dtype),
+                energy_jump=jnp.zeros((), ctx.q0.dtype),
             ),
             first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
             compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
@@ -450,10 +457,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return moved, p1, compensation, violation
 
     def _step_result(self, ctx, state, q1, p1, result, violation):
-        """`(finite, result, constraint, first)`: whether the end state is finite, the step's
-        result with the failures that only the end state shows (not finite, an invalid step,
-        drift off the primary constraint), the constraint distance relative to the residual
-        scale, and the run's first such distance."""
+        """`(finite, result, constraint, first, jump)`: whether the end state is finite, the
+        step's result with the failures that only the end state shows (not finite, an invalid
+        step, drift off the primary constraint, an energy jump), the constraint distance
+        relative to the residual scale, the run's first such distance, and the step's
+        relative energy jump (0 where it is not checked)."""
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         result = diffrax.RESULTS.where(
             finite | (result != diffrax.RESULTS.successful),
@@ -480,7 +488,17 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             STEP_FAILURES["vi_constraint_drift"],
             result,
         )
-        return finite, result, constraint, first
+        # A converged step whose energy jumped far past the method's error is a wrong root.
+        jump = jnp.zeros((), ctx.q0.dtype)
+        if self.energy_check and _energy_check.applies(ctx.term, ctx.t, ctx.q0, ctx.args):
+            jump = _energy_check.relative_jump(ctx.term, ctx.t, ctx.q0, ctx.p0, q1, p1,
+                                               ctx.args)
+            result = diffrax.RESULTS.where(
+                (jump > _energy_check.JUMP_TOLERANCE) & (result == diffrax.RESULTS.successful),
+                STEP_FAILURES["vi_step_energy_jump"],
+                result,
+            )
+        return finite, result, constraint, first, jump
 
     def _finish_step(
         self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
@@ -490,8 +508,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         accepts the step). `violation` is the end state's distance from the primary
         constraint (`end_on_constraint`); `forces`, the forces at the nodes of the converged
         curve where the solve has them (else they are evaluated here)."""
-        finite, result, constraint, first = self._step_result(ctx, state, q1, p1, result,
-                                                               violation)
+        finite, result, constraint, first, jump = self._step_result(ctx, state, q1, p1,
+                                                                     result, violation)
         # A failed step's end state is never passed off as data: the steps before it stay,
         # this one is NaN (with `throw=False`), and `report` says where and why it failed.
         failed = result != diffrax.RESULTS.successful
@@ -547,6 +565,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 iterations=n,
                 result=result,
                 constraint=constraint,
+                energy_jump=jump,
             ),
             first_constraint=first,
             compensation=jax.tree_util.tree_map(

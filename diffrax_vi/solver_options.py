@@ -50,6 +50,8 @@ def check_options(solver: Any) -> None:
         )
     if not isinstance(solver.compensated, bool):
         raise TypeError(f"compensated must be True or False, got {solver.compensated!r}")
+    if not isinstance(solver.energy_check, bool):
+        raise TypeError(f"energy_check must be True or False, got {solver.energy_check!r}")
     need = solver.basis.min_nodes()
     if solver.quadrature.num_nodes < need:
         raise ValueError(

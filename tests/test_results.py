@@ -66,7 +66,7 @@ def assert_failed_at(sol, member, t_fail, kind):
 
 def test_each_member_is_distinct_and_documented():
     values = {int(m._value) for m in STEP_FAILURES.values()}
-    assert len(values) == len(STEP_FAILURES) == 7
+    assert len(values) == len(STEP_FAILURES) == 8
     for name, member in STEP_FAILURES.items():
         assert getattr(diffrax.RESULTS, name) == member
         message = diffrax.RESULTS[member]

@@ -197,7 +197,7 @@ def test_each_member_has_its_own_kind():
     kinds = [dvi.failure_kind(member) for member in STEP_FAILURES.values()]
     assert kinds == [
         "maxiter", "stalled", "nonfinite", "singular", "step_size", "constraint_drift",
-        "constraint_unmet",
+        "constraint_unmet", "energy_jump",
     ]
     assert dvi.failure_kind(diffrax.RESULTS.max_steps_reached) == "max_steps"
     assert dvi.failure_kind(diffrax.RESULTS.dt_min_reached) == "dt_min"

@@ -1,0 +1,127 @@
+"""The energy check of a step: a converged step whose energy jumped is a wrong root.
+
+A root finder that converged has found *a* root of the step's equations, not necessarily the
+one that continues the motion: at steps near the motion's time scale the equations have other
+roots, and a solve seeded far from the right one may end on one of them. Nothing in the
+solve's residual tells them apart. The motion's physics does: where the Lagrangian does not
+depend on time and no non-conservative force acts, the energy `H(q, p) = p·v − L(q, v)` is
+conserved, and a variational step changes it only by its own error, a small fraction of the
+energy that moves between the kinetic and the potential parts. A wrong root changes it by
+many times that.
+
+The check compares `|H(q₁, p₁) − H(q₀, p₀)|` with the energy's scale at the start of the step,
+`|p₀·v₀| + |L(q₀, v₀)|` (twice the kinetic energy plus the size of the Lagrangian: both parts of
+the energy, where `|H₀|` alone may be zero), and fails the step
+(`RESULTS.vi_step_energy_jump`) where the ratio exceeds `JUMP_TOLERANCE`. Its cost is two
+energy evaluations a step (each an evaluation of `L` and its velocity gradient; the kinetic
+matrix is formed only where it is not known when the step is traced).
+
+Whether the check applies is decided when the step is traced, from the program of the term
+(dead-code elimination, as `diffrax_vi.picard.kinetic_structure`): a `LagrangianTerm` whose
+Lagrangian and holonomic constraints do not read the time, without a non-conservative force
+(whose work would have to be accounted for). Elsewhere the step is not checked. A start whose
+energy cannot be evaluated (a singular kinetic matrix) passes.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .linalg import elimination_solve
+from .picard import _used_inputs, kinetic_structure
+from .terms import LagrangianTerm
+
+__all__ = ["JUMP_TOLERANCE", "applies", "energy_and_scale", "relative_jump"]
+
+# The largest energy change of a step, relative to the energy's scale at its start, that
+# counts as the method's error (see docs/benchmarks.md, "Energy check", for the measurements
+# it was chosen from).
+JUMP_TOLERANCE = 0.5
+
+
+def applies(term, t, q: Array, args) -> bool:
+    """Whether the energy of `term` is conserved, read from its program when the step is
+    traced: a `LagrangianTerm` without a non-conservative force whose Lagrangian (and
+    constraint, if any) does not read the time."""
+    if not isinstance(term, LagrangianTerm) or term.nonconservative_force is not None:
+        return False
+    dynamic, static = eqx.partition((term, args), eqx.is_array)
+    t = jnp.asarray(t)
+
+    def lagrangian(t, q, dynamic):
+        term_, args_ = eqx.combine(dynamic, static)
+        return term_(t, q, jnp.zeros_like(q), args_) + term_(t, q, jnp.ones_like(q), args_)
+
+    def constraint(t, q, dynamic):
+        term_, args_ = eqx.combine(dynamic, static)
+        return term_.constraint_values(t, q, args_)
+
+    structure = kinetic_structure(term, t, q, args)
+    if structure is not None and structure.mass is not None and not _regular(structure.mass, q):
+        return False  # a degenerate Lagrangian: no velocity map, no energy of (q, p)
+    try:
+        if _used_inputs(lagrangian, t, q, dynamic)[0]:
+            return False
+        if term.has_constraints and _used_inputs(constraint, t, q, dynamic)[0]:
+            return False
+    except Exception:  # a program that cannot be traced apart: no check, never a false alarm
+        return False
+    return True
+
+
+def _regular(mass: np.ndarray, q: Array) -> bool:
+    return bool(np.all(np.isfinite(mass)) and np.linalg.cond(mass) < 1 / np.finfo(q.dtype).eps)
+
+
+def _velocity(term: LagrangianTerm, t, q: Array, p: Array, args) -> Array:
+    """The velocity of `(q, p)`: the term's closed form, else its Newton iterations from
+    `v = 0` (by elimination: no library call in the step), with the kinetic matrix's inverse
+    taken when the step is traced where it is constant and known."""
+    if term.velocity_map is not None:
+        return term.velocity_map(t, q, p, args).astype(q.dtype)
+
+    def momentum(v):
+        return jax.grad(term.__call__, argnums=2)(t, q, v, args)
+
+    structure = kinetic_structure(term, t, q, args)
+    if structure is not None and structure.mass_constant and structure.mass is not None:
+        mass = structure.mass
+        if _regular(mass, q):
+            # quadratic in v: one Newton step from rest is exact
+            w = p - momentum(jnp.zeros_like(q))
+            if np.array_equal(mass, np.eye(q.size)):
+                return w
+            minv = jnp.asarray(np.linalg.inv(mass), q.dtype)
+            return jnp.sum(minv * w[None, :], axis=1)
+    v = jnp.zeros_like(q)
+    for _ in range(term.legendre_iterations):
+        mass = jax.jacfwd(momentum)(v)
+        v = v - elimination_solve(mass, momentum(v) - p)
+    return v
+
+
+def energy_and_scale(term: LagrangianTerm, t, q: Array, p: Array, args) -> tuple[Array, Array]:
+    """`(H, S)`: the energy `p·v − L(q, v)` of `(q, p)` and its scale `|p·v| + |L(q, v)|`."""
+    v = _velocity(term, t, q, p, args)
+    pv = jnp.sum(p * v)
+    lagrangian = term(t, q, v, args)
+    return pv - lagrangian, jnp.abs(pv) + jnp.abs(lagrangian)
+
+
+def relative_jump(term: LagrangianTerm, t, q0, p0, q1, p1, args) -> Array:
+    """`|H(q₁, p₁) − H(q₀, p₀)| / S(q₀, p₀)` of one step (0 where the start's energy is not
+    finite: a singular kinetic matrix, which the check cannot judge)."""
+    # Both ends in one batched evaluation: the same kernels as one (their count, not their
+    # size, is what a small step pays for on the CPU).
+    energies, scales = jax.vmap(lambda q, p: energy_and_scale(term, t, q, p, args))(
+        jnp.stack([q0, q1]), jnp.stack([p0, p1]))
+    e0, e1, scale = energies[0], energies[1], scales[0]
+    jump = jnp.abs(e1 - e0) / scale
+    # A non-finite end energy with a finite start is a jump (inf); a non-finite start, none.
+    judged = jnp.isfinite(e0) & jnp.isfinite(scale) & (scale > 0)
+    inf, zero = jnp.full_like(jump, jnp.inf), jnp.zeros_like(jump)
+    return jnp.where(judged, jnp.where(jnp.isnan(jump), inf, jump), zero).astype(q0.dtype)
