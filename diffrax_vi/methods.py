@@ -53,6 +53,8 @@ __all__ = [
 
 _SOLVER_OPTIONS = {"root_finder", "root_find_max_steps", "adjoint", "compensated",
                    "energy_check"}
+# The step-size controller's error estimate, for every method (`NetworkVI.error_estimate`).
+_SOLVER_OPTIONS |= {"error_estimate"}
 # Accepted for compatibility; dense output is the continuous converged curve and nothing
 # prints inside a compiled solve, so these have no effect.
 _NO_EFFECT = {"record_grid_points", "show_status"}
@@ -272,7 +274,8 @@ def CGVI(
     (`regularization_factor`, `LevenbergMarquardt()`) selects the reference's form instead:
     the values at the points as unknowns (`FreeEndpoints()`), seeded by an exact
     least-squares fit to the trajectory. Both solve the same equations for the same
-    polynomial."""
+    polynomial. `error_estimate=True` gives `diffrax.PIDController` the step's local error
+    (the companion of degree `degree + 1`; see `NetworkVI`)."""
     basis = LagrangeBasis(degree, points)
     quadrature = quadrature if quadrature is not None else GaussLegendre(degree + 1)
     seed_options = (set(options) & _KNOWN) - {"max_iterations"}

@@ -10,6 +10,7 @@ from typing import Any
 import optimistix as optx
 
 from .ansatz.base import AbstractBasis
+from .companion import check_error_estimate
 from .formulation import AbstractFormulation, FreeEndpoints
 from .projection import VariableProjection
 from .quadrature import AbstractQuadrature
@@ -59,14 +60,7 @@ def check_options(solver: Any) -> None:
             f"{solver.quadrature!r} has {solver.quadrature.num_nodes}. With fewer, the step "
             "equations do not determine the step."
         )
-    estimate = solver.error_estimate
-    if estimate is not None and (
-        not isinstance(estimate, int) or isinstance(estimate, bool) or estimate < 1
-    ):
-        raise ValueError(
-            "error_estimate must be None or the degree (>= 1) of the companion cGVI, got "
-            f"{estimate!r}"
-        )
+    check_error_estimate(solver.error_estimate, solver.basis)
     if isinstance(solver.formulation, VariableProjection):
         solver.formulation.check_basis(solver.basis)
         if not isinstance(solver.root_finder, RoundoffNewton):
