@@ -3,12 +3,12 @@
 Kepler (e = 0.5, float64), time per step of a whole jitted `diffeqsolve` with constant
 steps, alone and per member-step of a `vmap` over `--members` orbits (e in [0.1, 0.6]):
 
-- `CGVI(k)` with `picard=True`: the Jacobian-free iteration (`diffrax_vi.picard`) on this
+- `CGVI(k)` by default: the Jacobian-free iteration (`diffrax_vi.picard`) on this
   constant-mass Lagrangian;
-- the same with `picard=False` (the default): the chord iteration with the Jacobian formed
-  once per step;
-- the projected `NetworkVI` (tanh, `k + 1` neurons, Gauss–Legendre `k + 1`: the same span
-  dimension) with `FixedPointIteration(picard=True)`, and with its default `RoundoffNewton`;
+- the same with `picard=False`: the chord iteration with the Jacobian formed once per step;
+- the default projected `NetworkVI` (tanh, `k + 1` neurons, Gauss–Legendre `k + 1`: the
+  same span dimension; the same engine), with `FixedPointIteration(picard=True)`, and with
+  `RoundoffNewton` without the engine;
 - `diffrax.Dopri8` at `--dopri-rtol`;
 - the floor: a plain-JAX Gauss collocation step with `k + 1` stages, a fixed count of
   fixed-point updates (`--floor-updates`) and `lax.scan` over the steps (cost only: its
@@ -139,9 +139,12 @@ def step_costs(args) -> list[str]:
     fpi = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
     width = degree + 1
     solvers = {
-        f"CGVI({degree}) engine": dvi.CGVI(degree, root_finder=fpi),
+        f"CGVI({degree}) default (engine)": dvi.CGVI(degree),
         f"CGVI({degree}) chord": dvi.CGVI(
             degree, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False)
+        ),
+        f"NetworkVI(tanh {width}) default": dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1)
         ),
         f"NetworkVI(tanh {width}) FPI engine": dvi.NetworkVI(
             dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1),
@@ -231,9 +234,9 @@ def _equations(jaxpr) -> int:
 def program_sizes(args) -> list[str]:
     """The size of the program of a 10-step solve (what its first call traces and compiles):
     equations of its jaxpr, instructions and while loops of XLA's optimised HLO. Beside the
-    default `CGVI(6)` (the chord iteration): the Jacobian-free iteration with and without its
-    Newton fallback, and the chord iteration without the restart of a solve not converged in
-    `FIRST_TRY` updates (`root_find_max_steps=16`)."""
+    default `CGVI(6)` (the Jacobian-free iteration where the kinetic matrix is constant):
+    that with its Newton fallback compiled in, and the chord iteration with and without the
+    restart of a solve not converged in `FIRST_TRY` updates (`root_find_max_steps=16`)."""
     import diffrax
     import jax
 
@@ -250,11 +253,6 @@ def program_sizes(args) -> list[str]:
         "CGVI(6) chord": dvi.CGVI(6, root_finder=chord),
         "CGVI(6) chord no restart": dvi.CGVI(6, root_finder=chord, root_find_max_steps=16),
         "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
-        "CGVI(6) engine no fallbk": dvi.CGVI(6, root_finder=dvi.FixedPointIteration(
-            ftol=0.0, predict=True, picard=True, picard_fallback=False)),
-        "NetworkVI engine no fb.": dvi.NetworkVI(
-            dvi.ShallowNetBasis(dvi.tanh, 10),
-            root_finder=dvi.RoundoffNewton(confirm=False, picard=True, picard_fallback=False)),
     }
     lines = ["# program of a 10-step solve: jaxpr equations, optimised HLO instructions, "
              "while loops"]

@@ -32,15 +32,12 @@ import numpy as np
 from jaxtyping import Array
 
 from .linalg import elimination_solve
-from .picard import _used_inputs, kinetic_structure
+from .picard import kinetic_structure, used_inputs
+from .results import JUMP_TOLERANCE
 from .terms import LagrangianTerm
 
 __all__ = ["JUMP_TOLERANCE", "applies", "energy_and_scale", "relative_jump"]
 
-# The largest energy change of a step, relative to the energy's scale at its start, that
-# counts as the method's error (see docs/benchmarks.md, "Energy check", for the measurements
-# it was chosen from).
-JUMP_TOLERANCE = 0.5
 
 
 def applies(term, t, q: Array, args) -> bool:
@@ -64,9 +61,9 @@ def applies(term, t, q: Array, args) -> bool:
     if structure is not None and structure.mass is not None and not _regular(structure.mass, q):
         return False  # a degenerate Lagrangian: no velocity map, no energy of (q, p)
     try:
-        if _used_inputs(lagrangian, t, q, dynamic)[0]:
+        if used_inputs(lagrangian, t, q, dynamic)[0]:
             return False
-        if term.has_constraints and _used_inputs(constraint, t, q, dynamic)[0]:
+        if term.has_constraints and used_inputs(constraint, t, q, dynamic)[0]:
             return False
     except Exception:  # a program that cannot be traced apart: no check, never a false alarm
         return False

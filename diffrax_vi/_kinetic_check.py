@@ -11,14 +11,16 @@ refused by name here, before the first step (diffrax's explicit solvers, which n
 inverse Legendre map, name it too).
 
 The check costs nothing where the kinetic matrix is known when the solve is traced and is
-regular (most mechanical systems). Where it is singular, the constant parts of the
-linearisation are read then too: if they settle the question, a blind direction is a
-`ValueError` naming it; otherwise the rest is evaluated at the start, `(t0, q0)` and the
-velocity `M⁺ (p0 − ϑ(t0, q0, 0))`, and a blind direction is a run-time error with the same
-diagnosis. Only a `LagrangianTerm` is checked: not an `IODETerm` (whose maps its author
-states, degenerate ones on purpose), not a kinetic matrix whose program reads the velocity
-(evaluated at a guessed velocity it could make a false alarm), not a term with holonomic
-constraints (whose multipliers may fix such directions).
+regular (most mechanical systems), nor where it varies with the state and is regular at a
+random state (a double pendulum's): such a matrix is singular at most at special states.
+Where it is singular, the constant parts of the linearisation are read then too: if they
+settle the question, a blind direction is a `ValueError` naming it; otherwise the rest is
+evaluated at the start, `(t0, q0)` and the velocity `M⁺ (p0 − ϑ(t0, q0, 0))`, and a blind
+direction is a run-time error with the same diagnosis. Only a `LagrangianTerm` is checked:
+not an `IODETerm` (whose maps its author states, degenerate ones on purpose), not a kinetic
+matrix whose program reads the velocity (evaluated at a guessed velocity it could make a
+false alarm), not a term with holonomic constraints (whose multipliers may fix such
+directions).
 """
 
 from __future__ import annotations
@@ -106,6 +108,36 @@ def _known_mass(ctx):
     except Exception:  # no fast answer: the full analysis below decides
         return None
     return None if structure is None else structure.mass
+
+
+def _generically_regular(blocks, ctx, dynamic, static, tol: float) -> bool:
+    """Whether a kinetic matrix that varies with the state is regular at a random state (its
+    rank where it is not at a special state: the double pendulum's is regular everywhere).
+    Evaluated now, with the term's own parameters where they are known (else `False`)."""
+    from .picard import evaluated_now
+
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(dynamic)):
+        return False
+    dtype = ctx.q0.dtype
+    rng = np.random.default_rng(0)
+    size = ctx.q0.shape[0]
+    inputs = (np.asarray(0.375, dtype), rng.normal(size=size).astype(dtype),
+              rng.normal(size=size).astype(dtype),
+              jax.tree_util.tree_map(np.asarray, dynamic))
+    try:
+        mass = np.asarray(evaluated_now(_mass_block(blocks), static, inputs), np.float64)
+    except Exception:  # a program that cannot run on such a state: checked as before
+        return False
+    if not np.all(np.isfinite(mass)):
+        return False
+    return blind_directions([mass], np.eye(size), tol).shape[1] == 0
+
+
+def _mass_block(blocks):
+    def mass(t, q, v, dynamic):
+        return blocks(t, q, v, dynamic, which=(0,))[0]
+
+    return mass
 
 
 def _name(direction: np.ndarray) -> str:
@@ -206,6 +238,8 @@ def refuse_degenerate_start(ctx):
         return ctx  # a regular kinetic matrix, known now: nothing to check
     dynamic, static = eqx.partition((ctx.term, ctx.args), eqx.is_array)
     blocks = _blocks(ctx.term, static)
+    if mass is None and _generically_regular(blocks, ctx, dynamic, static, tol):
+        return ctx  # singular at most at special states: not checked when the solve runs
     inputs = (jnp.asarray(t), ctx.q0, jnp.zeros_like(ctx.q0), dynamic)
     try:
         reads = _reads(blocks, inputs)

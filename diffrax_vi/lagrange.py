@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-__all__ = ["lagrange_weights"]
+__all__ = ["lagrange_values_and_slopes", "lagrange_weights"]
 
 
 @functools.cache
@@ -39,3 +39,27 @@ def lagrange_weights(points: tuple[float, ...], tau: Array) -> Array:
     at = diff == 0
     exact = jnp.where(jnp.any(at), at.astype(dtype), values)
     return jax.lax.stop_gradient(exact) + (values - jax.lax.stop_gradient(values))
+
+
+def lagrange_values_and_slopes(points: tuple[float, ...], taus: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray]:
+    """The Lagrange basis through `points` and its τ-derivative at the points `taus`
+    (`(len(taus), len(points))` each), in NumPy float64: the first-form formula and its
+    product rule (no division by `τ − x_m`), exactly one-hot at the points themselves."""
+    x = np.asarray(points, np.float64)
+    taus = np.asarray(taus, np.float64)
+    n = len(x)
+    w = _barycentric(tuple(points))
+    diff = taus[:, None] - x[None, :]  # (K, n)
+    values = np.empty((len(taus), n))
+    slopes = np.zeros((len(taus), n))
+    for k in range(n):
+        others = [m for m in range(n) if m != k]
+        values[:, k] = w[k] * np.prod(diff[:, others], axis=1)
+        for j in others:
+            rest = [m for m in others if m != j]
+            slopes[:, k] += w[k] * np.prod(diff[:, rest], axis=1)
+    at = diff == 0
+    hit = np.any(at, axis=1)
+    values[hit] = at[hit].astype(np.float64)
+    return values, slopes

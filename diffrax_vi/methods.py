@@ -264,11 +264,13 @@ def CGVI(
 
     By default the step is solved on the span of the Lagrange basis in coordinates that are
     orthonormal in the quadrature's norm (`VariableProjection()`), from the previous step's
-    polynomial continued: a square, well-conditioned system, solved to round-off by the
-    chord iteration with its Jacobian formed once per step
-    (`FixedPointIteration(ftol=0, predict=True)`, which goes on with Newton's updates where
-    it cannot contract). `picard=True` takes the Jacobian-free iteration instead where the
-    kinetic matrix is constant (see `RoundoffNewton`). A seed option
+    polynomial continued: a square, well-conditioned system, solved to round-off
+    (`FixedPointIteration(ftol=0, predict=True, picard=True)`). Where the Lagrangian's
+    kinetic matrix is constant, that is the Jacobian-free iteration on the forces at the
+    nodes (a step it does not converge on fails, for the step-size controller to retry:
+    `RetryFailedSteps`); elsewhere the chord iteration with its Jacobian formed once per
+    step, where a step it cannot contract on fails the same way (`restart=True` restarts it
+    inside the step from the trajectory seed with Newton's updates instead). A seed option
     (`initial_guess_method`, `initial_trajectory_method`, `extrapolation_substep`, ...) or
     a damped root finder
     (`regularization_factor`, `LevenbergMarquardt()`) selects the reference's form instead:
@@ -288,7 +290,7 @@ def CGVI(
     kwargs: dict[str, Any] = {k: v for k, v in options.items() if k in _SOLVER_OPTIONS}
     if options.get("max_iterations") is not None:
         kwargs["root_find_max_steps"] = options["max_iterations"]
-    kwargs.setdefault("root_finder", FixedPointIteration(ftol=0.0, predict=True))
+    kwargs.setdefault("root_finder", FixedPointIteration(ftol=0.0, predict=True, picard=True))
     return NetworkVI(basis, quadrature, formulation=VariableProjection(), **kwargs)
 
 

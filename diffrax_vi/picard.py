@@ -25,7 +25,6 @@ which costs nothing unless some member of a batch needs it.
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -35,11 +34,12 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from .linalg import elimination_solve
+from .linalg import elimination_solve, well_conditioned
 
 __all__ = [
     "KineticStructure", "PicardPlan", "PicardSolve", "extrapolation", "kinetic_structure",
-    "picard_plan", "picard_solve", "newton_solve", "start_at_rest", "step_residual",
+    "evaluated_now", "picard_engine", "picard_plan", "picard_solve", "newton_solve",
+    "start_at_rest", "step_residual", "used_inputs",
 ]
 
 # Updates made first without any test (their changes are not even measured), then updates
@@ -75,7 +75,7 @@ class KineticStructure(NamedTuple):
     mass: np.ndarray | None
 
 
-def _used_inputs(fn, *inputs) -> list[bool]:
+def used_inputs(fn, *inputs) -> list[bool]:
     """Which leaves of `inputs` the outputs of `fn(*inputs)` depend on: dead-code elimination
     of its program, so the answer is structural (a dependence that cancels numerically still
     counts)."""
@@ -95,6 +95,26 @@ def kinetic_structure(term, t, q, args) -> KineticStructure | None:
     if not isinstance(term, LagrangianTerm):
         return None
     dynamic, static = eqx.partition((term, args), eqx.is_array)
+    # The answer depends on the program and the shapes only (a known mass is one that reads
+    # no input at all): kept per term settings and shapes, as a solve asks for it in `init`
+    # and in every trace of its step.
+    leaves, tree = jax.tree_util.tree_flatten((jnp.asarray(t), q, dynamic))
+    try:
+        key = (static, tree, tuple((np.shape(a), jnp.result_type(a)) for a in leaves))
+        hash(key)
+    except TypeError:  # unhashable settings: read afresh
+        return _kinetic_structure(t, q, dynamic, static)
+    if key not in _STRUCTURES:
+        if len(_STRUCTURES) >= 64:
+            _STRUCTURES.pop(next(iter(_STRUCTURES)))
+        _STRUCTURES[key] = _kinetic_structure(t, q, dynamic, static)
+    return _STRUCTURES[key]
+
+
+_STRUCTURES: dict = {}
+
+
+def _kinetic_structure(t, q, dynamic, static) -> KineticStructure | None:
     v = jnp.zeros_like(q)
 
     def lagrangian(t, q, v, dynamic):
@@ -112,24 +132,18 @@ def kinetic_structure(term, t, q, args) -> KineticStructure | None:
 
     try:
         inputs = (jnp.asarray(t), q, v, dynamic)
-        used_mass = _used_inputs(mass, *inputs)
-        used_offset = _used_inputs(offset, *inputs)
-        used_force = _used_inputs(force, *inputs)
+        used_mass = used_inputs(mass, *inputs)
+        used_offset = used_inputs(offset, *inputs)
+        used_force = used_inputs(force, *inputs)
     except Exception:  # a program that cannot be traced apart: no fast path, never wrong
         return None
     mass_constant = not any(used_mass[:3])
     known = None
     if mass_constant and not any(used_mass):
-        with jax.ensure_compile_time_eval():
-            zeros = jax.tree_util.tree_map(
-                lambda a: np.zeros(a.shape, a.dtype), (jnp.asarray(t), q, v, dynamic)
-            )
-            try:
-                hash(static)
-                program = functools.partial(_mass_program, static)
-            except TypeError:  # a term with unhashable settings: compiled for this call
-                program = jax.jit(mass)
-            known = np.asarray(program(*zeros), np.float64)
+        zeros = jax.tree_util.tree_map(
+            lambda a: np.zeros(np.shape(a), a.dtype), (jnp.asarray(t), q, v, dynamic)
+        )
+        known = np.asarray(evaluated_now(mass, static, zeros), np.float64)
     return KineticStructure(
         mass_constant=mass_constant,
         offset_moves=bool(used_offset[0] or used_offset[1]),
@@ -138,15 +152,51 @@ def kinetic_structure(term, t, q, args) -> KineticStructure | None:
     )
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _mass_program(static, t, q, v, dynamic):
-    """`∂²L/∂v²` as one compiled program (operation by operation, each would compile on its
-    own), reused by every step traced with the same term."""
-    def lagrangian(v):
-        term, args = eqx.combine(dynamic, static)
-        return term(t, q, v, args)
+def evaluated_now(fn, static, inputs):
+    """`fn(*inputs)` for NumPy `inputs`, computed now even while a solve is being traced: as
+    one program compiled ahead of time (a compiled executable runs on its arguments; a call
+    of `jax.jit` would be staged into the trace, and eager evaluation would compile every
+    operation on its own). The executable is kept per program (`fn`'s code), term settings
+    `static` (where hashable) and input shapes."""
+    shapes = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), inputs)
+    leaves, tree = jax.tree_util.tree_flatten(shapes)
+    try:
+        key = (fn.__code__, static, tree, tuple(leaves))
+        compiled = _COMPILED.get(key)
+    except TypeError:  # a term with unhashable settings: compiled for this call
+        key, compiled = None, None
+    if compiled is None:
+        compiled = jax.jit(fn).lower(*shapes).compile()
+        if key is not None:
+            if len(_COMPILED) >= 64:
+                _COMPILED.pop(next(iter(_COMPILED)))
+            _COMPILED[key] = compiled
+    return compiled(*inputs)
 
-    return jax.hessian(lagrangian)(v)
+
+_COMPILED: dict = {}
+
+
+def picard_engine(allowed: bool, formulation, ctx):
+    """`(plan, structure, span)` of the Jacobian-free iteration where a step can take it: a
+    root finder that allows it (`allowed`), the projected step on a span known when the step
+    is traced and the same in every coordinate (a linear ansatz, a fixed hidden layer), and
+    a Lagrangian whose kinetic matrix is constant and well conditioned. Decided when the
+    step is traced; else `None`."""
+    if not allowed:
+        return None
+    span = formulation.fixed_span(ctx)
+    if span is None:
+        return None
+    plan = picard_plan(span, ctx.weights)
+    if plan is None:
+        return None
+    structure = kinetic_structure(ctx.term, ctx.t, ctx.q0, ctx.args)
+    if structure is None or not structure.mass_constant:
+        return None
+    if structure.mass is not None and not well_conditioned(structure.mass):
+        return None
+    return plan, structure, span
 
 
 class PicardPlan(NamedTuple):

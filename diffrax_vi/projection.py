@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .ansatz.base import AbstractBasis
+from .ansatz.polynomial import LagrangeBasis
 from .ansatz.shallow import ShallowNetBasis
 from .degenerate import first_order_end_correction
 from .formulation import (
@@ -40,6 +41,7 @@ from .formulation import (
     stage_values,
 )
 from .hidden_layers import AbstractHiddenLayer, UniformLayer
+from .lagrange import lagrange_values_and_slopes
 from .linalg import unpivoted_inverse
 from .precision import lapack_dtype
 from .projected_solve import solve_projected
@@ -86,6 +88,11 @@ def _known_features(theta, basis: AbstractBasis, nodes, dim: int, dtype):
     compiled program (operation by operation, each would compile on its own), run now
     (`VariableProjection.span` calls it in JAX's eager context, even while a step is being
     traced)."""
+    if type(basis) is LagrangeBasis:  # closed form in NumPy: nothing to compile
+        taus = np.concatenate([np.asarray(nodes, np.float64), [0.0, 1.0]])
+        value, slope = lagrange_values_and_slopes(basis.control_points, taus)
+        return (np.repeat(value[:, :, None], dim, axis=2).astype(dtype),
+                np.repeat(slope[:, :, None], dim, axis=2).astype(dtype), ())
     arrays, static = eqx.partition((theta, basis, nodes), eqx.is_array)
     try:
         hash(static)

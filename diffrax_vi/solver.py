@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
 
-from . import _energy_check
+from ._energy_check import applies as energy_check_applies
+from ._energy_check import relative_jump
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .companion import companion_error, estimate_order
@@ -41,12 +42,11 @@ from .holonomic import (
 )
 from .interpolation import NetworkInterpolation
 from .lazy import unless_all_skip
-from .linalg import dense_tangent_solve, well_conditioned
+from .linalg import dense_tangent_solve
 from .picard import (
     extrapolation,
-    kinetic_structure,
     newton_solve,
-    picard_plan,
+    picard_engine,
     picard_solve,
     start_at_rest,
     step_residual,
@@ -55,7 +55,7 @@ from .precision import compensated_add
 from .projected_solve import with_known_span
 from .projection import VariableProjection
 from .quadrature import AbstractQuadrature, GaussLegendre
-from .results import STEP_FAILURES, StepReport
+from .results import JUMP_TOLERANCE, STEP_FAILURES, StepReport
 from .root_finders.damped_newton import LevenbergMarquardt
 from .root_finders.newton import RoundoffNewton
 from .root_finders.step_hints import traits_of
@@ -99,10 +99,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
     - `seed`: where each step's solve starts, a `SeedPolicy` (its trajectory estimate, the fit
       of seed parameters to it, refits of the previous step's neurons). Default
       `SeedPolicy()`.
-    - `root_finder`: the per-step root finder. Default `None`: `RoundoffNewton()` for the
-      projected step (not confirming on a network's span), `LevenbergMarquardt()` for the
-      all-parameter steps; `picard=True` on either of the first two takes the Jacobian-free
-      iteration where the Lagrangian's kinetic matrix is constant.
+    - `root_finder`: the per-step root finder. Default `None`: for the projected step
+      `RoundoffNewton(picard=True)` (not confirming on a network's span), which takes the
+      Jacobian-free iteration wherever the Lagrangian's kinetic matrix is constant and
+      Newton's method elsewhere; `LevenbergMarquardt()` for the all-parameter steps.
       `FixedPointIteration` also serves the projected step. A plain optimistix root finder
       gets none of the solver's options (residual scale, closed-form Jacobian, fallback
       seed) and stops on absolute tolerances.
@@ -161,7 +161,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 # benchmarks page has the figures); on a polynomial span it removes the
                 # first update's bias.
                 confirm = not isinstance(self.basis, ShallowNetBasis)
-                self.root_finder = RoundoffNewton(confirm=confirm)
+                self.root_finder = RoundoffNewton(confirm=confirm, picard=True)
             else:
                 self.root_finder = LevenbergMarquardt()
 
@@ -246,7 +246,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         node_values = (jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2
         if ctx.term.has_constraints:
             check_constrained_solver(self.basis, self.error_estimate)
-        engine = None if ctx.term.has_constraints else self._picard_engine(ctx)
+        engine = None if ctx.term.has_constraints else self._engine(ctx)
         if engine is not None:  # the first step continues the curve at rest
             node_values = start_at_rest(engine[1], ctx)
         return NetworkVIState(
@@ -298,7 +298,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         state = solver_state
         if ctx.term.has_constraints:
             return self._constrained_step(ctx, state, made_jump)
-        engine = self._picard_engine(ctx)
+        engine = self._engine(ctx)
         if engine is not None:
             return self._picard_step(ctx, state, made_jump, *engine)
         seeding = self.seeder
@@ -319,26 +319,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             solved.forces,
         )
 
-    def _picard_engine(self, ctx):
-        """`(plan, structure, span)` of the Jacobian-free iteration (`diffrax_vi.picard`)
-        where this step can take it: the projected step on a span known when the step is
-        traced and the same in every coordinate (a linear ansatz, a fixed hidden layer), a
-        root finder that allows it (`FixedPointIteration(picard=True)`), and a Lagrangian
-        whose kinetic matrix is constant. Decided when the step is traced; else `None`."""
-        if not traits_of(self.root_finder).allows_picard():
-            return None
-        span = self.formulation.fixed_span(ctx)
-        if span is None:
-            return None
-        plan = picard_plan(span, ctx.weights)
-        if plan is None:
-            return None
-        structure = kinetic_structure(ctx.term, ctx.t, ctx.q0, ctx.args)
-        if structure is None or not structure.mass_constant:
-            return None
-        if structure.mass is not None and not well_conditioned(structure.mass):
-            return None
-        return plan, structure, span
+    def _engine(self, ctx):
+        """The Jacobian-free iteration's plan where this step takes it (`picard_engine`)."""
+        return picard_engine(traits_of(self.root_finder).allows_picard(), self.formulation, ctx)
 
     def _picard_step(self, ctx, state, made_jump, plan, structure, span):
         """The projected step by the Jacobian-free iteration, started from the previous
@@ -497,11 +480,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         )
         # A converged step whose energy jumped far past the method's error is a wrong root.
         jump = jnp.zeros((), ctx.q0.dtype)
-        if self.energy_check and _energy_check.applies(ctx.term, ctx.t, ctx.q0, ctx.args):
-            jump = _energy_check.relative_jump(ctx.term, ctx.t, ctx.q0, ctx.p0, q1, p1,
+        if self.energy_check and energy_check_applies(ctx.term, ctx.t, ctx.q0, ctx.args):
+            jump = relative_jump(ctx.term, ctx.t, ctx.q0, ctx.p0, q1, p1,
                                                ctx.args)
             result = diffrax.RESULTS.where(
-                (jump > _energy_check.JUMP_TOLERANCE) & (result == diffrax.RESULTS.successful),
+                (jump > JUMP_TOLERANCE) & (result == diffrax.RESULTS.successful),
                 STEP_FAILURES["vi_step_energy_jump"],
                 result,
             )

@@ -33,9 +33,10 @@ from typing import Any
 
 from .methods import CGVI
 from .quadrature import GaussLegendre, gauss_legendre_exact
+from .root_finders.fixed_point import FixedPointIteration
 from .solver import NetworkVI
 
-__all__ = ["SpectralCGVI", "spectral_degree", "spectral_step_error"]
+__all__ = ["SpectralCGVI", "large_step_root_finder", "spectral_degree", "spectral_step_error"]
 
 #: The largest degree `spectral_degree` considers unless told otherwise.
 DEFAULT_MAX_DEGREE = 40
@@ -263,4 +264,13 @@ def SpectralCGVI(
             "use CGVI(degree, quadrature) for another rule"
         )
     degree = spectral_degree(dt, timescale, rtol, max_degree, model)
+    options.setdefault("root_finder", large_step_root_finder())
     return CGVI(degree, GaussLegendre(degree + 1), **options)
+
+
+def large_step_root_finder() -> FixedPointIteration:
+    """`SpectralCGVI`'s root finder: the chord iteration, restarted inside the step from the
+    trajectory seed with Newton's updates where it cannot contract. The Jacobian-free
+    iteration of `CGVI`'s default contracts at a rate of order `(hω)²`, which the steps this
+    method is for exceed."""
+    return FixedPointIteration(ftol=0.0, predict=True, picard=False, restart=True)

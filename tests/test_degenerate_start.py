@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
+from diffrax_vi import problems
 from diffrax_vi._kinetic_check import (
     DEGENERATE_START_MESSAGE,
     SINGULAR_AT_START,
@@ -81,6 +82,10 @@ def test_nothing_is_added_where_nothing_needs_checking():
     for term in (regular, rotation):
         ctx = _context(term, Y0)
         assert refuse_degenerate_start(ctx) is ctx
+    # a kinetic matrix that varies with the state, regular at a random state
+    pendulum = problems.double_pendulum()
+    ctx = _context(pendulum.term, pendulum.y0)
+    assert refuse_degenerate_start(ctx) is ctx
     # known only from the start's values: checked on them (here at once, as they are concrete)
     with pytest.raises(Exception, match="singular at the start"):
         refuse_degenerate_start(_context(BLIND_LATER, Y0))

@@ -165,8 +165,11 @@ def test_network_oscillator_in_one_update(confirm, updates):
 def _stiff(root_finder, **options):
     # A stiff quartic spring at a long step: from the previous curve continued the start is
     # far, and the Jacobian there is not the one at the root.
+    # At h·ω ≈ 35 its steps are far off the motion, and the energy check refuses them: off
+    # here, where only the root finders are compared on the same equations.
     term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ v - 2500.0 * jnp.sum(q**4))
     y0 = (jnp.array([1.0]), jnp.array([0.0]))
+    options.setdefault("energy_check", False)
     sol = diffrax.diffeqsolve(
         term, dvi.CGVI(6, root_finder=root_finder, **options), 0.0, 2.0, 0.2, y0,
         max_steps=10, saveat=diffrax.SaveAt(t1=True), throw=False,
@@ -185,9 +188,10 @@ def test_fails_loudly_where_the_chord_cannot_contract():
 def test_a_failed_first_try_goes_on_with_newton():
     # Where the chord iteration cannot contract from the previous curve, the restart from the
     # trajectory seed goes on with refreshed Jacobians: the step is Newton's.
-    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0))
+    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0, restart=True))
     assert newton == diffrax.RESULTS.successful
-    for rf in (FixedPointIteration(ftol=1.0), FixedPointIteration(ftol=0.0, predict=True)):
+    for rf in (FixedPointIteration(ftol=1.0, restart=True),
+               FixedPointIteration(ftol=0.0, predict=True, restart=True)):
         result, q = _stiff(rf)
         assert result == diffrax.RESULTS.successful
         np.testing.assert_allclose(np.asarray(q), np.asarray(q_newton), atol=1e-10)
@@ -195,7 +199,7 @@ def test_a_failed_first_try_goes_on_with_newton():
 
 @pytest.mark.slow
 def test_refresh_solves_where_the_chord_fails():
-    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0))
+    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0, restart=True))
     refreshing, q_refreshing = _stiff(FixedPointIteration(ftol=1.0, refresh=0.5))
     assert newton == diffrax.RESULTS.successful
     assert refreshing == diffrax.RESULTS.successful
@@ -441,9 +445,9 @@ def test_kinetic_iteration_fails_loudly_or_refreshes():
     # refresh the step fails; with one, the iteration turns into Newton's and solves it.
     result, _ = _stiff(FixedPointIteration(ftol=1.0, matrix="kinetic"))
     assert result != diffrax.RESULTS.successful
-    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0))
+    newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0, restart=True))
     refreshing, q_refreshing = _stiff(FixedPointIteration(ftol=1.0, matrix="kinetic",
-                                                          refresh=0.5))
+                                                          refresh=0.5, restart=True))
     assert refreshing == diffrax.RESULTS.successful
     np.testing.assert_allclose(np.asarray(q_refreshing), np.asarray(q_newton), atol=1e-10)
 

@@ -344,9 +344,9 @@ def test_vise_constructor_configures_initial_weights():
     cgvi = dvi.CGVI(3)
     assert cgvi.basis == dvi.LagrangeBasis(3) and cgvi.quadrature == GL(4)
     # by default the projected step on the polynomial span, solved to round-off by the
-    # chord iteration
+    # Jacobian-free iteration where it fits (else the chord iteration)
     assert isinstance(cgvi.formulation, dvi.VariableProjection)
-    assert cgvi.root_finder == dvi.FixedPointIteration(ftol=0.0, predict=True)
+    assert cgvi.root_finder == dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
     # a seed option or a damped root finder selects the reference's form
     for options in (
         dict(initial_guess_method=dvi.LeastSquaresFit()),

@@ -14,10 +14,9 @@ from diffrax_vi.root_finders.fixed_point import FixedPointIteration
 
 jax.config.update("jax_enable_x64", True)
 
-CHORD = FixedPointIteration(ftol=0.0, predict=True, picard=False)
+CHORD = FixedPointIteration(ftol=0.0, predict=True, picard=False, restart=True)
 ENGINE = FixedPointIteration(ftol=0.0, predict=True, picard=True)
 FALLBACK = FixedPointIteration(ftol=0.0, predict=True, picard=True, picard_fallback=True)
-NO_FALLBACK = FixedPointIteration(ftol=0.0, predict=True, picard=True, picard_fallback=False)
 
 MASS = jnp.array([[2.0, 0.3], [0.3, 1.0]])
 
@@ -84,16 +83,18 @@ def test_the_engine_is_chosen_only_where_it_applies():
     kepler = problems.kepler()
     assert _engine(dvi.CGVI(6, root_finder=ENGINE), kepler.term, kepler.y0, kepler.args) is not None
     assert _engine(dvi.CGVI(6, root_finder=CHORD), kepler.term, kepler.y0, kepler.args) is None
-    assert _engine(dvi.CGVI(6), kepler.term, kepler.y0, kepler.args) is None  # opt-in
+    # the defaults take it where it fits, decided when the step is traced
+    assert _engine(dvi.CGVI(6), kepler.term, kepler.y0, kepler.args) is not None
     network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))
-    assert _engine(network, kepler.term, kepler.y0, kepler.args) is None
-    fast_network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
-                                 root_finder=dvi.RoundoffNewton(confirm=False, picard=True))
-    assert _engine(fast_network, kepler.term, kepler.y0, kepler.args) is not None
-    # the chord or Newton iteration where it does not fit (a kinetic matrix that moves)
+    assert _engine(network, kepler.term, kepler.y0, kepler.args) is not None
+    # and the chord or Newton iteration where it does not (a kinetic matrix that moves)
     pendulum = problems.double_pendulum()
-    for solver in (dvi.CGVI(6, root_finder=ENGINE), fast_network):
+    for solver in (dvi.CGVI(6, root_finder=ENGINE), dvi.CGVI(6), network):
         assert _engine(solver, pendulum.term, pendulum.y0, pendulum.args) is None
+    # an explicit root finder without `picard` is respected
+    plain_network = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10),
+                                  root_finder=dvi.RoundoffNewton(confirm=False))
+    assert _engine(plain_network, kepler.term, kepler.y0, kepler.args) is None
 
 
 # the mass-spring case here; each case's engine step: test_its_step_is_a_root_of_the_step_equations
@@ -193,15 +194,14 @@ def test_a_step_it_cannot_contract_goes_to_newtons_iteration():
 
 
 def test_without_the_fallback_a_step_it_cannot_contract_fails_and_is_retried():
-    # `picard_fallback=False`: no Newton iteration inside the step. The step the iteration does not
+    # The default: no Newton iteration inside the step. The step the iteration does not
     # contract on fails loudly at a constant step, and `RetryFailedSteps` recovers it in
     # smaller pieces: at least as accurate as the chord iteration's run at full steps,
     # against Dopri8 at rtol 1e-13.
-    failed = _stiff_quartic(dvi.CGVI(6, root_finder=NO_FALLBACK), 110.0)
+    failed = _stiff_quartic(dvi.CGVI(6), 110.0)
     assert failed.result != diffrax.RESULTS.successful
     assert int(failed.solver_state.restarts) == 0
-    retried = _stiff_quartic(dvi.CGVI(6, root_finder=NO_FALLBACK), 110.0,
-                             dvi.RetryFailedSteps(), max_steps=100)
+    retried = _stiff_quartic(dvi.CGVI(6), 110.0, dvi.RetryFailedSteps(), max_steps=100)
     chord = _stiff_quartic(dvi.CGVI(6, root_finder=CHORD), 110.0)
     assert retried.result == diffrax.RESULTS.successful
     term = dvi.LagrangianTerm(lambda t, q, v, k: 0.5 * v @ v - k * jnp.sum(q**4))
@@ -213,7 +213,9 @@ def test_without_the_fallback_a_step_it_cannot_contract_fails_and_is_retried():
     assert retried_error <= float(jnp.max(jnp.abs(chord.ys[0] - reference)))
 
 
-def test_picard_fallback_must_be_a_bool():
+def test_picard_fallback_needs_picard():
+    with pytest.raises(ValueError, match="picard_fallback"):
+        FixedPointIteration(picard_fallback=True)
     with pytest.raises(TypeError, match="picard_fallback"):
         dvi.RoundoffNewton(picard=True, picard_fallback=1)
 

@@ -37,11 +37,13 @@ def residual_scale(y0):
 def test_oscillator_to_round_off_in_one_iteration(activation):
     # A quadratic Lagrangian makes the projected equations linear: one Newton update solves
     # them, and the residual left is rounding (issue 27: max error <= 2e-14, final <= 1e-14);
-    # the network's default root finder does not confirm it (`confirm=False`).
+    # the network's Newton iteration does not confirm it (`confirm=False`, as the default
+    # root finder has it where the kinetic matrix is not constant).
     problem = problems.harmonic_oscillator()
     solver = dvi.NetworkVI(
         dvi.ShallowNetBasis(activation, 10), dvi.GaussLegendre(8),
         formulation=dvi.VariableProjection(), iteration_log=10,
+        root_finder=dvi.RoundoffNewton(confirm=False),
     )
     sol = solve(problem, solver)
     assert sol.result == diffrax.RESULTS.successful
@@ -243,15 +245,17 @@ def test_vmap_matches_loop_on_the_double_pendulum():
     np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-14)
 
 
-def _restart_run(problem):
+def _restart_run(problem, restart=True, controller=None):
     def run(y, max_steps=256):
         solver = dvi.NetworkVI(
             dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(16),
+            root_finder=dvi.RoundoffNewton(confirm=False, picard=True, restart=restart),
             root_find_max_steps=max_steps,
         )
         sol = diffrax.diffeqsolve(
             problem.term, solver, 0.0, 5.0, 1.0, y, args=problem.args, throw=False,
-            saveat=diffrax.SaveAt(t1=True, solver_state=True),
+            saveat=diffrax.SaveAt(t1=True, solver_state=True), max_steps=64,
+            stepsize_controller=controller or diffrax.ConstantStepSize(),
         )
         return sol.ys[0][-1], sol.result, sol.solver_state.restarts
 
@@ -265,6 +269,25 @@ def test_restart_from_the_trajectory_seed():
     q, result, restarts = eqx.filter_jit(_restart_run(problem))(problem.y0)
     assert result == diffrax.RESULTS.successful
     assert int(restarts) >= 1 and np.all(np.isfinite(np.asarray(q)))
+
+
+def test_without_the_restart_such_a_step_fails_and_is_retried():
+    # The default (`restart=False`): the same run fails loudly at a constant step, and
+    # `RetryFailedSteps` takes the steps that failed in pieces and reaches t1 at least as
+    # close to the motion as the run with the restart (its pieces are shorter steps).
+    problem = problems.double_pendulum()
+    reference = diffrax.diffeqsolve(
+        problem.term, diffrax.Dopri8(), 0.0, 5.0, 1e-3, problem.y0, args=problem.args,
+        stepsize_controller=diffrax.PIDController(rtol=1e-12, atol=1e-12), max_steps=100_000,
+    ).ys[0][-1]
+    with_restart, _, _ = eqx.filter_jit(_restart_run(problem))(problem.y0)
+    _, result, restarts = eqx.filter_jit(_restart_run(problem, restart=False))(problem.y0)
+    assert result != diffrax.RESULTS.successful and int(restarts) == 0
+    retried = _restart_run(problem, restart=False, controller=dvi.RetryFailedSteps())
+    q, result, restarts = eqx.filter_jit(retried)(problem.y0)
+    assert result == diffrax.RESULTS.successful and int(restarts) == 0
+    error = float(jnp.max(jnp.abs(q - reference)))
+    assert error <= float(jnp.max(jnp.abs(with_restart - reference)))
 
 
 @pytest.mark.slow  # the restart itself: the test above; here under vmap and without a second try

@@ -71,7 +71,9 @@ def _captured_hints(monkeypatch, solver) -> list[StepHints]:
 
 
 def test_the_projected_step_hands_its_root_finder_typed_hints(monkeypatch):
-    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 6))
+    # Newton's iteration (not the Jacobian-free one, which takes no hints)
+    solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 6),
+                           root_finder=dvi.RoundoffNewton(confirm=False))
     seen = _captured_hints(monkeypatch, solver)
     assert seen
     for hints in seen:

@@ -86,8 +86,8 @@ INITIAL_GUESSES = {
 # The all-parameter solves' root finders (the reference's two solvers)...
 DAMPED = {"LevenbergMarquardt": LevenbergMarquardt, "RegularisedNewton": RegularisedNewton}
 # ...and the projected step: `VariableProjection()` on its default hidden layer, solved by
-# `NetworkVI`'s default root finder for it (`RoundoffNewton`; no λ, no reference convergence
-# test).
+# `NetworkVI`'s default root finder for it (`RoundoffNewton`, taking the Jacobian-free
+# iteration where the kinetic matrix is constant; no λ, no reference convergence test).
 PROJECTED = {"projection": RoundoffNewton}
 SOLVERS = {**DAMPED, **PROJECTED}
 PROBLEMS = {

@@ -99,12 +99,12 @@ class FixedPointIteration(RoundoffNewton):
     step) fails loudly and the step is rejected rather than accepted wrong.
 
     The hints `max_iterations` and `restart = (first_try, start)` have the meaning they
-    have for `RoundoffNewton`; the iteration's matrix is formed and factorised afresh at the
-    restart point, and (with `matrix="jacobian"`) the updates after it refresh their
-    Jacobian as `refresh=0.5` does: where the chord iteration could not contract from the
-    first start (a stiff problem, a long step), the second try is Newton's method, at
-    Newton's price, instead of a second failure. Solves that converge in the first try pay
-    nothing for it.
+    have for `RoundoffNewton`. With `restart=True` the iteration's matrix is formed and
+    factorised afresh at the restart point, and (with `matrix="jacobian"`) the updates after
+    it refresh their Jacobian as `refresh=0.5` does: where the chord iteration could not
+    contract from the first start (a stiff problem, a long step), the second try is
+    Newton's method, at Newton's price, instead of a second failure. Without it (the
+    default) such a step fails, for the step-size controller to retry.
 
     **Arguments:**
 
@@ -143,8 +143,9 @@ class FixedPointIteration(RoundoffNewton):
       rounding units of the unknowns is rounding noise, whose ratio to the update before
       says nothing of the rate: there the ratio before it is the rate, and the noise's size
       the update. Never after the first update. Default `False`.
-    - `picard`, `picard_fallback`: as for `RoundoffNewton` (the Jacobian-free iteration
-      where it fits, default `False`; its Newton fallback, default `True`).
+    - `picard`, `picard_fallback`, `restart`: as for `RoundoffNewton` (the Jacobian-free
+      iteration where it fits, default `False`, `CGVI`'s default sets it; no fallback and
+      no restart inside the step by default).
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 

@@ -103,8 +103,9 @@ class RoundoffNewton(AbstractStepRootFinder):
     Given the hint `max_iterations` (the solver's iteration cap), the whole solve runs in
     one optimistix step, as compiled loops of updates that carry only what the iteration
     needs; `state.iterations` counts the updates. Given also the hint
-    `restart = (first_try, start)`, a solve that has not converged after `first_try`
-    iterations (or has stalled or become non-finite before) starts once more from
+    `restart = (first_try, start)`, with `restart=True` a solve that has not converged
+    after `first_try` iterations (or has stalled or become non-finite before) starts once
+    more from
     `start(args)`, within the same cap; the test and the restart sit between two loops,
     not in every iteration, and `start` runs only where a solve needs it (under `vmap`:
     only if some member does). `state.restarted` says whether it did. Without the hint,
@@ -132,14 +133,19 @@ class RoundoffNewton(AbstractStepRootFinder):
       `∂²L/∂v²` and its span is known when the step is traced (`CGVI`, a network's fixed
       layer), solve the step by the Jacobian-free iteration on the forces at the nodes
       instead (`diffrax_vi.picard`), which needs no Jacobian at all; elsewhere this root
-      finder runs as described above. Decided when the step is traced. Default `False`.
+      finder runs as described above. Decided when the step is traced. Default `False`;
+      the default root finders of `CGVI` and of the projected `NetworkVI` set it.
     - `picard_fallback`: where the Jacobian-free iteration does not converge, go on with
-      Newton's iteration on the same equations from the same start, inside the step
-      (default `True`). `False`: such a step fails (`vi_step_stalled`,
-      `vi_step_max_iterations`) and the step-size controller recovers it
-      (`RetryFailedSteps` at a constant step, `PIDController` with an error estimate), as
-      diffrax's implicit solvers do: the fallback roughly doubles the compiled step and
-      slows every step that converges.
+      Newton's iteration on the same equations from the same start, inside the step.
+      Default `False`: such a step fails (`vi_step_stalled`, `vi_step_max_iterations`) and
+      the step-size controller recovers it (`RetryFailedSteps` at a constant step,
+      `PIDController` with an error estimate), as diffrax's implicit solvers do; the
+      fallback roughly doubles the compiled step and slows every step that converges.
+    - `restart`: where a solve given the hint `restart` (the projected step from the previous
+      curve continued) has not converged after `first_try` iterations, start once more from
+      the hint's point (the seed policy's trajectory seed), inside the step. Default
+      `False`: such a step fails and the step-size controller recovers it, as with
+      `picard_fallback`; the restart more than doubles the compiled step.
     - `rtol`, `atol`, `norm`: unused; diffrax reads them off the root finder of an implicit
       solver.
     """
@@ -154,7 +160,8 @@ class RoundoffNewton(AbstractStepRootFinder):
     max_backtracks: int = eqx.field(static=True, default=20)
     max_stalls: int = eqx.field(static=True, default=3)
     picard: bool = eqx.field(static=True, default=False)
-    picard_fallback: bool = eqx.field(static=True, default=True)
+    picard_fallback: bool = eqx.field(static=True, default=False)
+    restart: bool = eqx.field(static=True, default=False)
     rtol: float | None = None
     atol: float | None = None
     norm: Callable = optx.max_norm
@@ -166,9 +173,12 @@ class RoundoffNewton(AbstractStepRootFinder):
                     and value >= least and math.isfinite(value)):
                 kind = "a non-negative" if least == 0 else "a positive"
                 raise ValueError(f"{name} must be {kind} number (of eps), got {value!r}")
-        for name in ("confirm", "picard", "picard_fallback"):
+        for name in ("confirm", "picard", "picard_fallback", "restart"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.picard_fallback and not self.picard:
+            raise ValueError("picard_fallback=True needs picard=True (it is the fallback of "
+                             "the Jacobian-free iteration)")
         if self.floor < self.ftol:
             raise ValueError(f"floor ({self.floor}) must be at least ftol ({self.ftol})")
         for name in ("max_backtracks", "max_stalls"):
@@ -241,7 +251,7 @@ class RoundoffNewton(AbstractStepRootFinder):
             lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(lambda: fn(y, args)[1])
         )
         carry = (y, state, aux)
-        if hints.restart is None or hints.restart[0] >= cap:
+        if not self.restart or hints.restart is None or hints.restart[0] >= cap:
             return self._whole_solve_loop(fn, args, options, carry, cap)
         first_try, start = hints.restart
 
