@@ -20,9 +20,10 @@ is read from a profile of one run and does not depend on the machine's load).
 
 Then the size of the program of a 10-step solve (`program_sizes`: jaxpr equations,
 optimised HLO instructions, while loops), and the first call of a fresh process (trace,
-compile and one run; no persistent compilation cache) of `CGVI(6)` (its default and the
-chord iteration) and `NetworkVI` against `diffrax.Dopri8`'s on the same problem, double pendulum and
-Kepler, 10 steps each: `--fresh` runs, interleaved, medians and their ratios.
+compile and one run; no persistent compilation cache) of `CGVI(6)` (its default, and the
+chord iteration with its restart, the default before 2026-12-02) and `NetworkVI` against
+`diffrax.Dopri8`'s on the same problem, double pendulum and Kepler, 10 steps each: `--fresh`
+runs, interleaved, medians and their ratios.
 
     .venv/bin/python -m benchmarks.step_floor [--degree 6] [--members 256] [--fresh 5]
         [--only steps|sizes|first-call]
@@ -235,8 +236,10 @@ def program_sizes(args) -> list[str]:
     """The size of the program of a 10-step solve (what its first call traces and compiles):
     equations of its jaxpr, instructions and while loops of XLA's optimised HLO. Beside the
     default `CGVI(6)` (the Jacobian-free iteration where the kinetic matrix is constant):
-    that with its Newton fallback compiled in, and the chord iteration with and without the
-    restart of a solve not converged in `FIRST_TRY` updates (`root_find_max_steps=16`)."""
+    that with its Newton fallback compiled in, the chord iteration (the default where the
+    kinetic matrix varies), and with the restart of a solve not converged in `FIRST_TRY`
+    updates (`restart=True`, the default before 2026-12-02); the default `NetworkVI`, and
+    with Newton's restart as its default had it."""
     import diffrax
     import jax
 
@@ -246,13 +249,17 @@ def program_sizes(args) -> list[str]:
     fallback = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True,
                                        picard_fallback=True)
     chord = dvi.FixedPointIteration(ftol=0.0, predict=True)
+    restarting = dvi.FixedPointIteration(ftol=0.0, predict=True, restart=True)
     solvers = {
         "Dopri8": diffrax.Dopri8(),
         "CGVI(6)": dvi.CGVI(6),
         "CGVI(6) engine+fallback": dvi.CGVI(6, root_finder=fallback),
         "CGVI(6) chord": dvi.CGVI(6, root_finder=chord),
-        "CGVI(6) chord no restart": dvi.CGVI(6, root_finder=chord, root_find_max_steps=16),
+        "CGVI(6) chord+restart": dvi.CGVI(6, root_finder=restarting),
         "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10)),
+        "NetworkVI Newton+restart": dvi.NetworkVI(
+            dvi.ShallowNetBasis(dvi.tanh, 10),
+            root_finder=dvi.RoundoffNewton(confirm=False, restart=True)),
     }
     lines = ["# program of a 10-step solve: jaxpr equations, optimised HLO instructions, "
              "while loops"]
@@ -280,9 +287,9 @@ import diffrax, diffrax_vi as dvi
 from diffrax_vi import problems
 name, which = sys.argv[1], sys.argv[2]
 problem = getattr(problems, name)()
-chord = dvi.FixedPointIteration(ftol=0.0, predict=True)
+restarting = dvi.FixedPointIteration(ftol=0.0, predict=True, restart=True)
 solver = {"Dopri8": diffrax.Dopri8(), "CGVI(6)": dvi.CGVI(6),
-          "CGVI(6) chord": dvi.CGVI(6, root_finder=chord),
+          "CGVI(6) chord+restart": dvi.CGVI(6, root_finder=restarting),
           "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))}[which]
 h = float(problem.dt)
 t0 = time.perf_counter()
@@ -297,7 +304,8 @@ def first_calls(args) -> list[str]:
     lines = [f"# first call in a fresh process (trace + compile + run, 10 steps), median of "
              f"{args.fresh} interleaved runs"]
     for problem in ("double_pendulum", "kepler"):
-        times = {which: [] for which in ("Dopri8", "CGVI(6)", "CGVI(6) chord", "NetworkVI")}
+        times = {which: [] for which in ("Dopri8", "CGVI(6)", "CGVI(6) chord+restart",
+                                         "NetworkVI")}
         for _ in range(args.fresh):
             for which in times:
                 out = subprocess.run(
@@ -308,7 +316,7 @@ def first_calls(args) -> list[str]:
         dopri = statistics.median(times["Dopri8"])
         for which, values in times.items():
             median = statistics.median(values)
-            lines.append(f"{problem:16s} {which:14s} median {median:6.2f} s "
+            lines.append(f"{problem:16s} {which:22s} median {median:6.2f} s "
                          f"({', '.join(f'{v:.2f}' for v in values)}), "
                          f"{median / dopri:4.2f}x Dopri8")
     return lines

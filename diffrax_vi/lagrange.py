@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-__all__ = ["lagrange_values_and_slopes", "lagrange_weights"]
+__all__ = ["continuation_coefficients", "lagrange_values_and_slopes", "lagrange_weights"]
 
 
 @functools.cache
@@ -63,3 +63,27 @@ def lagrange_values_and_slopes(points: tuple[float, ...], taus: np.ndarray
     hit = np.any(at, axis=1)
     values[hit] = at[hit].astype(np.float64)
     return values, slopes
+
+
+@functools.cache
+def continuation_coefficients(points: tuple[float, ...]) -> np.ndarray:
+    """`C` (`(n, n, n)`) with `Σ_m r^m C[m, j, k] = ℓ_k(1 + r τ_j)`: the Lagrange basis through
+    `points` at the points of a next step `r` times as long, continued from this one, as a
+    polynomial in `r` (NumPy float64; evaluate it by Horner's rule: a few fused products
+    instead of a product over the points for every entry). A row of `τ_j = 0` (this step's
+    end, where it is a point) is exactly one-hot."""
+    x = np.asarray(points, np.float64)
+    n = len(x)
+    weights = _barycentric(tuple(points))
+    coefficients = np.zeros((n, n, n))
+    for j in range(n):
+        for k in range(n):
+            poly = np.array([weights[k]])  # ascending powers of r
+            for m in range(n):
+                if m != k:  # the factor (1 − τ_m) + τ_j r
+                    poly = np.convolve(poly, np.array([1.0 - x[m], x[j]]))
+            coefficients[: len(poly), j, k] = poly
+    for j in np.flatnonzero(x == 0.0):
+        coefficients[:, j, :] = 0.0
+        coefficients[0, j, :] = (x == 1.0).astype(np.float64)
+    return coefficients

@@ -34,6 +34,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
+from .lagrange import continuation_coefficients
 from .linalg import elimination_solve, well_conditioned
 
 __all__ = [
@@ -372,17 +373,9 @@ def extrapolation(nodes: np.ndarray, ratio: Array, values: Array) -> Array:
     """The polynomial through `values` at `nodes` (`(R, D)`) of the last step, evaluated at
     this step's nodes `1 + ratio·c_j` in the last step's time (`ratio` = this step's length
     over the last's): the next step's start, as IRKGL16 starts its stages."""
-    c = np.asarray(nodes, np.float64)
-    r = c.shape[0]
+    r = len(nodes)
     # ℓ_m(1 + ρ c_i) as a polynomial in ρ, per (i, m): coefficients from NumPy
-    coeffs = np.zeros((r, r, r))  # (power, i, m)
-    for i in range(r):
-        for m in range(r):
-            poly = np.poly1d([1.0])
-            for n in range(r):
-                if n != m:
-                    poly *= np.poly1d([c[i], 1.0 - c[n]]) / (c[m] - c[n])
-            coeffs[: poly.order + 1, i, m] = poly.coeffs[::-1]
+    coeffs = continuation_coefficients(tuple(float(c) for c in np.asarray(nodes)))
     # the weights as polynomials in ρ (one fused elementwise kernel), then one product; under
     # `vmap` (ρ differs between members) the product is one batched `dot`, so that the
     # weights' kernel is not fused into a slow reduction over the members

@@ -112,8 +112,22 @@ def test_time_at_error_and_ratios():
     assert "unreachable" in report.ratio_markdown(list(table.values()))
 
 
+def test_the_plotted_front_is_ordered_by_error_and_never_turns_back():
+    """The figure's curve of a solver: its points that no other beats in both error and
+    time, most accurate first; a slower, less accurate point and a failed one are left off."""
+    pts = [(1e-6, 1.0), (1e-14, 4.0), (1e-10, 2.0), (1e-9, 3.0), (1e-12, 1.5)]
+    rows = [dict(problem="p", solver="s", family="peer", status="ok", error=e, wall_s=w)
+            for e, w in pts]
+    rows.append(dict(problem="p", solver="s", family="peer", status="diverged", error=1e-16,
+                     wall_s=0.1))
+    front = report.work_precision_front(rows)
+    assert front == [(1e-14, 4.0), (1e-12, 1.5), (1e-6, 1.0)]
+    errors, times = zip(*front, strict=True)
+    assert list(errors) == sorted(errors) and list(times) == sorted(times, reverse=True)
+
+
 def test_quick_grid_is_the_reference_grid():
-    every = quick_grid(retry_dts=())  # the runs under RetryFailedSteps: test_stability_target
+    every = quick_grid(retry_dts=(), pid_dts=())  # retry and PID runs: test_stability_target
     assert len(every) == 216  # once with our convergence test, once with the reference's
     assert {c.acceptance for c in every} == {"strict", "reference"}
     cases = [c for c in every if c.acceptance == "strict"]
@@ -367,7 +381,7 @@ def test_stability_sweep_runs_the_projected_step_on_request(tmp_path):
         select_solvers(["DogLeg"])
     with pytest.raises(SystemExit):
         cli_main(["stability", "--solvers", "DogLeg", "--out", str(tmp_path)])
-    cases = quick_grid(solvers=("projection",), retry_dts=())
+    cases = quick_grid(solvers=("projection",), retry_dts=(), pid_dts=())
     assert len(cases) == 54 and {c.acceptance for c in cases} == {"strict"}
     assert {c.solver for c in quick_grid()} == {"LevenbergMarquardt", "RegularisedNewton"}
     case = next(c for c in cases if c.problem == "harmonic_oscillator")

@@ -58,7 +58,7 @@ def _solve(solver, name, n=None, y0=None, saveat=None):
 
 def _engine(solver, term, y0, args, h=0.1):
     ctx = solver.step_context(term, 0.0, h, y0, args)
-    return solver._picard_engine(ctx)
+    return solver._engine(ctx)
 
 
 def test_structure_is_read_from_the_lagrangian():
@@ -120,7 +120,7 @@ def test_its_step_is_a_root_of_the_step_equations(name):
     solver = dvi.CGVI(6, root_finder=ENGINE)
     term, y0, args = _problem(name)
     ctx = solver.step_context(term, 0.0, CASES[name][1], y0, args)
-    plan, structure, span = solver._picard_engine(ctx)
+    plan, structure, span = solver._engine(ctx)
     solved = picard_solve(plan, structure, ctx, span, start_at_rest(structure, ctx),
                           lambda z: step_residual(plan, ctx, z))
     assert bool(solved.converged)
@@ -244,7 +244,7 @@ def test_lower_precisions(dtype, bound):
     problem = problems.harmonic_oscillator(dtype=dtype)
     solver = dvi.CGVI(4, root_finder=ENGINE)
     ctx = solver.step_context(problem.term, dtype(0), dtype(0.1), problem.y0, problem.args)
-    assert solver._picard_engine(ctx) is not None
+    assert solver._engine(ctx) is not None
     sol = diffrax.diffeqsolve(
         problem.term, solver, dtype(0), dtype(1), dtype(0.1), problem.y0, args=problem.args,
         saveat=diffrax.SaveAt(ts=jnp.asarray(problem.ts, dtype)),

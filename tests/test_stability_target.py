@@ -90,6 +90,28 @@ def test_stability_target_counts_each_part():
     f16 = _row(10.0, dtype="float16", controller="retry", err=None, reached=False,
                result="vi_step_stalled")
     assert stability_target([*rows, f16])["met"] is True
+    # under PIDController: counted per outcome; a wrong success anywhere fails the target,
+    # and a case recovered accurately by either controller counts as recovered
+    pid = _row(10.0, controller="pid", err=3e-3, reached=True, steps_done=40, rejected=3)
+    with_pid = stability_target([*rows, pid])
+    assert with_pid["adaptive"]["pid"][("projection", "float64")] == dict(
+        cases=1, accurate=1, failed=0, wrong=0)
+    assert {p["pid_outcome"] for p in with_pid["pairs"]} == {"accurate", None}
+    assert with_pid["met"] is True
+    wrong_pid = dict(pid, err_t1=0.5)
+    assert stability_target([*rows, wrong_pid])["met"] is False
+    # a rate under its target at constant steps is met where the same cases under
+    # RetryFailedSteps end accurately at t1 at the target's rate
+    slow = dict(_row(1.0), status="diverged", result="vi_step_stalled", err_t1=None)
+    retried = _row(1.0, controller="retry", err=2e-9, reached=True, steps_done=12, rejected=2)
+    missed = stability_target([r for r in rows if r["dt"] != 1.0] + [slow])
+    assert missed["rates"][("projection", "float64")]["met"] is False
+    recovered = stability_target([r for r in rows if r["dt"] != 1.0] + [slow, retried])
+    g = recovered["rates"][("projection", "float64")]
+    assert (g["rate"], g["retry_cases"], g["retry_rate"], g["met"]) == (0.5, 1, 1.0, True)
+    assert recovered["met"] is True
+    # a wrong success at a small step fails the target too
+    assert stability_target([*rows, _row(0.1, err=0.5)])["met"] is False
     # a large step without its retry run: the pair says so, and the target is not met
     lone = stability_target([r for r in rows if r["controller"] == "constant"])
     assert {p["retry_reached"] for p in lone["pairs"]} == {None} and lone["met"] is False
@@ -102,9 +124,10 @@ def test_target_table_and_csv_round_trip(tmp_path):
     assert stability_target(rows) == stability_target(_tiny_sweep())
     text = report.stability_table(rows)
     assert text.startswith("Restated target")
-    assert "| projection | float32 | 1/2 (50 %) | 85 % | **no** | 0 / 0 / 1 | 0/1 | – |" in text
-    assert ("| projection | float64 | 2/2 (100 %) | 90 % | yes | 1 / 1 / 0 | 2/2 | 4.00e-03 |"
-            in text)
+    assert ("| projection | float32 | 1/2 (50 %) | – | 0 | 85 % | **no** | 0 / 0 / 1 | 0/1 | – "
+            "| 0 / 1 / 0 | – |") in text
+    assert ("| projection | float64 | 2/2 (100 %) | – | 0 | 90 % | yes | 1 / 1 / 0 | 2/2 "
+            "| 4.00e-03 | 2 / 0 / 0 | – |") in text
     assert "Target **not met**" in text and "**wrong**" in text
     # the reference's tables below count the constant-step cases only
     assert "| float64 | ours | 4 | 3 | 75 % |" in text
@@ -118,14 +141,19 @@ def test_target_table_and_csv_round_trip(tmp_path):
 def test_quick_grid_adds_the_large_steps_under_retry():
     cases = quick_grid(solvers=("projection",))
     retry = [c for c in cases if c.controller == "retry"]
-    assert len(cases) == 54 + 18 and len(retry) == 18
-    assert {c.dt for c in retry} == {10.0} and {c.acceptance for c in retry} == {"strict"}
+    pid = [c for c in cases if c.controller == "pid"]
+    assert len(cases) == 54 + 36 + 18 and (len(retry), len(pid)) == (36, 18)
+    assert {c.dt for c in retry} == {1.0, 10.0} and {c.dt for c in pid} == {10.0}
+    for runs in (retry, pid):
+        assert {c.acceptance for c in runs} == {"strict"}
     assert {c.solver_key() for c in retry}.isdisjoint(
         {c.solver_key() for c in cases if c.controller == "constant"})
+    assert {c.solver_key() for c in pid}.isdisjoint({c.solver_key() for c in retry})
+    assert pid[0].build().error_estimate is True and retry[0].build().error_estimate is None
     damped = quick_grid(["pendulum"])
-    assert len(damped) == 72 + 12  # the reference's accounting is not rerun
-    assert quick_grid(["pendulum"], retry_dts=()) == [c for c in damped
-                                                      if c.controller == "constant"]
+    assert len(damped) == 72 + 24 + 12  # the reference's accounting is not rerun
+    assert quick_grid(["pendulum"], retry_dts=(), pid_dts=()) == [
+        c for c in damped if c.controller == "constant"]
     with pytest.raises(ValueError, match="controller"):
         StabilityCase("pendulum", 1.0, "float64", 8, 8, "tanh", "projection",
                       controller="adaptive")

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..lagrange import lagrange_weights
+from ..lagrange import continuation_coefficients, lagrange_weights
 from ..quadrature import gauss_lobatto_upper, symmetric_points
 from .base import AbstractBasis
 
@@ -29,30 +29,6 @@ def lobatto_points(degree: int) -> tuple[float, ...]:
     upper = gauss_lobatto_upper(degree)
     points = symmetric_points(upper, np.float64, middle=degree % 2 == 0, ends=True)
     return tuple(float(v) for v in points)
-
-
-@functools.cache
-def _continuation_coefficients(points: tuple[float, ...]) -> np.ndarray:
-    """`C[m]` with `Σ_m r^m C[m][j, k] = ℓ_k(1 + r τ_j)`: the Lagrange basis through `points`
-    at the points of a next step `r` times as long, as a polynomial in `r` (NumPy, float64).
-    The row of `τ_j = 0` (the step's end, a point itself) is exactly one-hot."""
-    x = np.asarray(points, np.float64)
-    n = len(x)
-    diff = x[:, None] - x[None, :]
-    np.fill_diagonal(diff, 1.0)
-    weights = 1.0 / np.prod(diff, axis=1)
-    coefficients = np.zeros((n, n, n))
-    for j in range(n):
-        for k in range(n):
-            poly = np.array([weights[k]])  # ascending powers of r
-            for m in range(n):
-                if m != k:  # the factor (1 - τ_m) + τ_j r
-                    poly = np.convolve(poly, np.array([1.0 - x[m], x[j]]))
-            coefficients[: len(poly), j, k] = poly
-    for j in np.flatnonzero(x == 0.0):
-        coefficients[:, j, :] = 0.0
-        coefficients[0, j, :] = (x == 1.0).astype(np.float64)
-    return coefficients
 
 
 class LagrangeBasis(AbstractBasis):
@@ -108,7 +84,7 @@ class LagrangeBasis(AbstractBasis):
         # coefficients, evaluated by Horner's rule (a few fused products, not a product over
         # the points for every entry).
         ratio = jnp.asarray(ratio, theta.dtype)
-        coefficients = _continuation_coefficients(self.control_points)
+        coefficients = continuation_coefficients(self.control_points)
         matrix = jnp.asarray(coefficients[-1], theta.dtype)
         for c in coefficients[-2::-1]:
             matrix = matrix * ratio + c.astype(theta.dtype)

@@ -26,6 +26,7 @@ __all__ = [
     "stability_target_table",
     "markdown",
     "plot_work_precision",
+    "work_precision_front",
     "plot_energy",
     "plot_convergence_heatmap",
 ]
@@ -167,22 +168,34 @@ def stability_target_table(rows: Sequence[dict]) -> str:
     def keys(table):
         return sorted(table, key=lambda k: (k[0], order.get(k[1], 3)))
 
+    def counts(table):
+        return ("–" if not table else
+                f"{table['accurate']} / {table['failed']} / {table['wrong']}")
+
     body = []
     for key in keys(target["rates"]):
         g = target["rates"][key]
         retry = target["retry"].get(key)
         large = target["large"].get(key, {})
+        adaptive = {c: target["adaptive"].get(c, {}).get(key) for c in ("retry", "pid")}
         body.append((
             key[0], key[1], f"{g['converged']}/{g['cases']} ({100 * g['rate']:.0f} %)",
+            "–" if g.get("retry_rate") is None else
+            f"{round(g['retry_rate'] * g['cases'])}/{g['cases']} "
+            f"({100 * g['retry_rate']:.0f} %)",
+            str(g.get("wrong", 0)),
             f"{100 * g['target']:.0f} %", "yes" if g["met"] else "**no**",
             f"{large.get('accurate', 0)} / {large.get('failed', 0)} / {large.get('wrong', 0)}"
             if large else "–",
             "–" if retry is None else f"{retry['reached']}/{retry['cases']}",
             "–" if retry is None else _fmt(retry["max_err_t1"]),
+            counts(adaptive["retry"]), counts(adaptive["pid"]),
         ))
-    text = markdown(["solver", "precision", "converged, dt ≤ 1", "target", "met",
+    text = markdown(["solver", "precision", "converged, dt ≤ 1",
+                     "converged, dt ≤ 1, retrying failed steps", "dt ≤ 1: wrong", "target", "met",
                      "dt > 1: accurate / failed / wrong", "retry: reached t1",
-                     "retry: largest err_t1"], body)
+                     "retry: largest err_t1", "retry (every dt): accurate / failed / wrong",
+                     "pid: accurate / failed / wrong"], body)
     tolerances = ", ".join(f"{d} {accuracy_tolerance(d):.2g}"
                            for d in ("float64", "float32", "float16"))
     pairs = sorted(target["pairs"], key=lambda p: (p["solver"], order.get(p["dtype"], 3),
@@ -192,7 +205,10 @@ def stability_target_table(rows: Sequence[dict]) -> str:
          p["outcome"] if p["outcome"] != "wrong" else "**wrong**",
          p["result"] or "–", _fmt(p["err_t1"]),
          "–" if p["retry_reached"] is None else ("yes" if p["retry_reached"] else "**no**"),
-         _fmt(p["retry_err_t1"]), _fmt(p["retry_steps"], "d"), _fmt(p["retry_rejected"], "d"))
+         _fmt(p["retry_err_t1"]), _fmt(p["retry_steps"], "d"), _fmt(p["retry_rejected"], "d"),
+         "–" if p.get("pid_outcome") is None else (
+             p["pid_outcome"] if p["pid_outcome"] != "wrong" else "**wrong**"),
+         _fmt(p.get("pid_err_t1")), _fmt(p.get("pid_steps"), "d"))
         for p in pairs
     ]
     verdict = "met" if target["met"] else "**not met**"
@@ -200,13 +216,15 @@ def stability_target_table(rows: Sequence[dict]) -> str:
         verdict = "not checked: no runs under `RetryFailedSteps` (`quick_grid` adds them)"
     text += (
         f"\n\nTarget {verdict}. Cases with dt > 1, each "
-        "with constant steps and again under `RetryFailedSteps` (accurate: successful with "
+        "with constant steps, again under `RetryFailedSteps` and under `PIDController` with "
+        "the error estimate at rtol = atol = sqrt(eps) (accurate: successful with "
         f"`err_t1` at most {tolerances}; `err_t1` = max|q(t1) − q_ref(t1)| over the largest "
         "|q_ref| of the run):\n\n"
     )
     text += markdown(["problem", "dt", "precision", "activation", "solver", "outcome",
                       "result", "err_t1", "retry: reached t1", "retry: err_t1",
-                      "retry: steps", "retry: rejected"], per)
+                      "retry: steps", "retry: rejected", "pid: outcome", "pid: err_t1",
+                      "pid: steps"], per)
     return text
 
 
@@ -281,22 +299,40 @@ def subplot_grid(n: int):
     return rows, cols
 
 
+def work_precision_front(rows: Iterable[dict]) -> list[tuple[float, float]]:
+    """`(error, wall)` of one solver's front, ordered by error (most accurate first): the
+    successful points that no other point beats in both error and time. Along it the error
+    grows and the time falls, so the curve drawn through it never turns back."""
+    return sorted((err, wall) for wall, err in _front(rows))
+
+
+_STYLE = {"ours": dict(marker="o", ls="-", lw=2, ms=6),
+          "peer": dict(marker="s", ls="--", lw=1, ms=4)}
+
+
 def plot_work_precision(rows: Sequence[dict], path) -> None:
-    """Wall time against final error, one panel per problem, one line per solver."""
+    """Wall time against final error, one panel per problem. Each solver's front
+    (`work_precision_front`) is a curve ordered by error; its other points, slower than a
+    more accurate one, are drawn as faint markers of the same colour, unjoined."""
     plt = pyplot()
     problems = list(dict.fromkeys(r["problem"] for r in rows))
     nr, nc = subplot_grid(len(problems))
     fig, axes = plt.subplots(nr, nc, figsize=(5 * nc, 4 * nr), squeeze=False)
     for ax, problem in zip(axes.flat, problems, strict=False):
         for solver in dict.fromkeys(r["solver"] for r in rows if r["problem"] == problem):
-            pts = sorted((r["error"], r["wall_s"]) for r in rows
-                         if r["problem"] == problem and r["solver"] == solver
-                         and r.get("status") == "ok" and r.get("error"))
-            if not pts:
+            srows = [r for r in rows if r["problem"] == problem and r["solver"] == solver]
+            front = work_precision_front(srows)
+            if not front:
                 continue
-            fam = next(r["family"] for r in rows if r["solver"] == solver)
-            ax.loglog(*zip(*pts, strict=True), "o-" if fam == "ours" else ".--", label=solver,
-                      lw=2 if fam == "ours" else 1)
+            style = _STYLE.get(srows[0]["family"], _STYLE["peer"])
+            (line,) = ax.loglog(*zip(*front, strict=True), label=solver, **style)
+            on_front = set(front)
+            rest = [(r["error"], r["wall_s"]) for r in srows
+                    if r.get("status") == "ok" and r.get("error") and r.get("wall_s")
+                    and (r["error"], r["wall_s"]) not in on_front]
+            if rest:
+                ax.loglog(*zip(*rest, strict=True), ls="none", marker=style["marker"],
+                          ms=style["ms"], color=line.get_color(), alpha=0.35)
         ax.set_title(problem)
         ax.set_xlabel("final error (relative, q)")
         ax.set_ylabel("wall time after compilation [s]")

@@ -99,7 +99,14 @@ PROBLEMS = {
 # diffeqsolve's step budget for a run under RetryFailedSteps (each failed trial and each
 # piece counts: 10 intervals of up to 2^8 pieces, and the failures on the way).
 RETRY_MAX_STEPS = 4096
-CONTROLLERS = ("constant", "retry")
+CONTROLLERS = ("constant", "retry", "pid")
+# The adaptive runs' tolerance (`controller="pid"`): rtol = atol = sqrt(eps) of the precision.
+PID_TOLERANCE_POWER = 0.5
+
+
+def pid_tolerance(dtype: str) -> float:
+    """`rtol = atol` of a case under `PIDController` with the error estimate."""
+    return float(np.finfo(np.dtype(dtype)).eps) ** PID_TOLERANCE_POWER
 
 # Per-problem quick settings of the reference (§2.3): network width S and quadrature nodes R.
 QUICK_WIDTH = {"harmonic_oscillator": 10, "pendulum": 8, "double_pendulum": 10, "toda_lattice": 8}
@@ -118,8 +125,10 @@ class StabilityCase:
     previous curve, so it does not use it), `steps` (10), `max_iterations` (the per-step
     iteration cap), `acceptance` (`"strict"`: our convergence test, or `"reference"`: the
     reference's, see `AbstractDampedNewton`'s `convergence`; the projected step has only
-    `"strict"`), `controller` (`"constant"`: exactly `steps` steps, `StepTo`; or `"retry"`:
-    the same grid under `RetryFailedSteps`, which splits a failed step into pieces).
+    `"strict"`), `controller` (`"constant"`: exactly `steps` steps, `StepTo`; `"retry"`: the
+    same grid under `RetryFailedSteps`, which splits a failed step into pieces; or `"pid"`:
+    from the same first step, `PIDController` at `pid_tolerance` with the solver's error
+    estimate, `error_estimate=True`).
     """
 
     problem: str
@@ -192,6 +201,7 @@ class StabilityCase:
                 formulation=VariableProjection(),
                 root_finder=None,  # the default step's
                 root_find_max_steps=self.max_iterations,
+                error_estimate=True if self.controller == "pid" else None,
             )
         lam = self.lam_value if lam is None else lam
         if reference is None:
@@ -204,6 +214,7 @@ class StabilityCase:
             seed=SeedPolicy(initial_trajectory=INITIAL_GUESSES[self.initial_guess]()),
             root_finder=root_finder,
             root_find_max_steps=self.max_iterations,
+            error_estimate=True if self.controller == "pid" else None,
         )
 
 
@@ -216,7 +227,8 @@ def quick_grid(
     solvers: Sequence[str] = ("LevenbergMarquardt", "RegularisedNewton"),
     max_iterations: int = 1000,
     acceptances: Sequence[str] = ("strict", "reference"),
-    retry_dts: Sequence[float] = (10.0,),
+    retry_dts: Sequence[float] = (1.0, 10.0),
+    pid_dts: Sequence[float] = (10.0,),
 ) -> list[StabilityCase]:
     """The reference's quick grid: 3 dt × 3 precisions × 2 activations × 2 solvers per problem
     (36 cases), with its per-problem S and R, λ = 16·sqrt(eps(T)) for `RegularisedNewton`,
@@ -224,9 +236,11 @@ def quick_grid(
     `acceptances` (ours, and the reference's, so that rates compare like with like). A
     solver of `PROJECTED` (`"projection"`) runs with our test only.
 
-    The cases with our test and a `dt` in `retry_dts` (default: dt = 10) run once more under
-    `RetryFailedSteps` (`controller="retry"`; one more compilation per network, precision
-    and solver): whether each reaches `t1`, and how accurately (`stability_target`)."""
+    The cases with our test and a `dt` in `retry_dts` (default: dt = 1 and 10) run once more
+    under `RetryFailedSteps` (`"retry"`), and those with a `dt` in `pid_dts` (default: 10)
+    under `PIDController` with the error estimate (`"pid"`), one more compilation each per
+    network, precision and solver: whether each reaches `t1`, and how accurately
+    (`stability_target`)."""
     cases = [
         StabilityCase(p, dt, T, QUICK_NODES[p], QUICK_WIDTH[p], a, s,
                       max_iterations=max_iterations, acceptance=acc)
@@ -234,8 +248,9 @@ def quick_grid(
             acceptances, problems, dtypes, activations, solvers, dts)
         if not (s in PROJECTED and acc != "strict")
     ]
-    return cases + [dataclasses.replace(c, controller="retry") for c in cases
-                    if c.acceptance == "strict" and c.dt in retry_dts]
+    return cases + [dataclasses.replace(c, controller=controller)
+                    for controller, dts in (("retry", retry_dts), ("pid", pid_dts))
+                    for c in cases if c.acceptance == "strict" and c.dt in dts]
 
 
 def full_grid(
@@ -309,9 +324,9 @@ _SWITCHED = {name: _switched(cls) for name, cls in DAMPED.items()}
 
 class _Compiled:
     """A compiled 10-step solve for one `solver_key`; `dt` enters through `StepTo`'s times,
-    the convergence test as a traced flag and λ as a traced scalar. Under `"retry"` the
-    solve runs from `ts[0]` to `ts[-1]` in steps of `ts[1] − ts[0]` with `RetryFailedSteps`
-    and saves the end state only."""
+    the convergence test as a traced flag and λ as a traced scalar. Under `"retry"` and
+    `"pid"` the solve runs from `ts[0]` to `ts[-1]` from a first step of `ts[1] − ts[0]`
+    with `RetryFailedSteps` or `PIDController`, and saves the end state only."""
 
     def __init__(self, case: StabilityCase):
         self.problem = PROBLEMS[case.problem](dtype=np.dtype(case.dtype))
@@ -319,12 +334,16 @@ class _Compiled:
         steps = case.steps
 
         retry = case.controller == "retry"
+        pid = case.controller == "pid"
+        tolerance = pid_tolerance(case.dtype)
 
         @eqx.filter_jit
         def solve(y0, ts, reference, lam):
             solver = case.build(reference=reference, lam=lam)
-            if retry:
-                dt0, controller, max_steps = ts[1] - ts[0], RetryFailedSteps(), RETRY_MAX_STEPS
+            if retry or pid:
+                controller = (RetryFailedSteps() if retry
+                              else diffrax.PIDController(rtol=tolerance, atol=tolerance))
+                dt0, max_steps = ts[1] - ts[0], RETRY_MAX_STEPS
                 saveat = diffrax.SaveAt(t1=True, solver_state=True)
             else:
                 dt0, controller, max_steps = None, diffrax.StepTo(ts), steps
@@ -366,7 +385,7 @@ def run_case(case: StabilityCase, cache: dict | None = None) -> dict[str, Any]:
         row["result"] = result_name(sol.result)
         state = sol.solver_state
         row["iterations"] = int(state.last_iterations)
-        if case.controller == "retry":
+        if case.controller in ("retry", "pid"):
             _retry_columns(row, sol, problem, ts64)
             return row
         row["steps_done"] = int(state.steps)
