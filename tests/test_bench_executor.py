@@ -32,7 +32,8 @@ cloudpickle.register_pickle_by_value(sys.modules[__name__])
 # Levenberg-Marquardt, our convergence test, every dt, constant steps only (one compilation:
 # CI time is short).
 CASES = quick_grid(["harmonic_oscillator"], dtypes=("float64",), activations=("tanh",),
-                   solvers=("LevenbergMarquardt",), acceptances=("strict",), retry_dts=())
+                   solvers=("LevenbergMarquardt",), acceptances=("strict",), retry_dts=(),
+                   pid_dts=())
 COMPARED = ("status", "iterations", "steps_done", "ref_err", "ham_drift")
 
 
@@ -220,8 +221,9 @@ def test_an_unreachable_scheduler_is_named():
 
 @pytest.mark.long
 def test_whole_quick_stability_sweep_on_two_workers_matches_serial(tmp_path):
-    """The whole quick sweep (252 cases: 216, and the 36 at dt = 10 again under
-    RetryFailedSteps): the cluster's table is the serial one."""
+    """The whole quick sweep (324 cases: 216, the 72 at dt = 1 and 10 again under
+    RetryFailedSteps, the 36 at dt = 10 under PIDController): the cluster's table is the
+    serial one."""
     cases = quick_grid()
     serial = stability_sweep(cases)
     with DaskExecutor(workers=2) as executor:
