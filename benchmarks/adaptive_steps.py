@@ -37,6 +37,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
+from benchmarks.explicit_methods import best_of  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
 
 TOLERANCES = (1e-4, 1e-6, 1e-8, 1e-10, 1e-12)
@@ -70,6 +71,21 @@ def max_abs(a, b) -> float:
 
 
 # -- calibration --------------------------------------------------------------------------------
+def exact_step_of(problem):
+    """`(t0, h, y0) ↦ y(t0 + h)`: one step of `problem` by `Dopri8` at rtol 1e-15, the exact
+    local solution the estimate is calibrated against."""
+    @eqx.filter_jit
+    def exact_step(t0, h, y0):
+        sol = diffrax.diffeqsolve(
+            problem.term, diffrax.Dopri8(), t0, t0 + h, h / 16, y0, args=problem.args,
+            stepsize_controller=diffrax.PIDController(rtol=1e-15, atol=1e-17),
+            max_steps=100_000,
+        )  # fmt: skip
+        return jax.tree_util.tree_map(lambda a: a[-1], sol.ys)
+
+    return exact_step
+
+
 def calibration(name: str, solver_name: str) -> None:
     make, _, steps = PROBLEMS[name]
     problem, solver = make(), SOLVERS[solver_name]()
@@ -82,14 +98,7 @@ def calibration(name: str, solver_name: str) -> None:
         )
         return y1, y_error, result == diffrax.RESULTS.successful
 
-    @eqx.filter_jit
-    def exact_step(t0, h, y0):
-        sol = diffrax.diffeqsolve(
-            problem.term, diffrax.Dopri8(), t0, t0 + h, h / 16, y0, args=problem.args,
-            stepsize_controller=diffrax.PIDController(rtol=1e-15, atol=1e-17),
-            max_steps=100_000,
-        )  # fmt: skip
-        return jax.tree_util.tree_map(lambda a: a[-1], sol.ys)
+    exact_step = exact_step_of(problem)
 
     qs, ps = problem.reference(np.asarray(CALIBRATION_TIMES))
     ratios, fits = [], []
@@ -205,16 +214,6 @@ def pid_table(name: str, solver_name: str) -> list[dict]:
 
 
 # -- cost ---------------------------------------------------------------------------------------
-def best_of(fn, repeats: int = 3) -> float:
-    jax.block_until_ready(fn())  # compiled and warm
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return min(times)
-
-
 def cost(name: str, solver_name: str, tol: float = 1e-10) -> None:
     """Wall time per step attempted under `PIDController(rtol=atol=tol)` (the step and its
     companion) against per step of the same solver at constant steps, as many as the
@@ -245,8 +244,8 @@ def cost(name: str, solver_name: str, tol: float = 1e-10) -> None:
             throw=False,
         )  # fmt: skip
 
-    per_adaptive = best_of(lambda: adaptive().ys) / taken * 1e3
-    per_constant = best_of(lambda: constant().ys) / accepted * 1e3
+    per_adaptive = best_of(lambda: adaptive().ys, 3) / taken * 1e3
+    per_constant = best_of(lambda: constant().ys, 3) / accepted * 1e3
     print(f"  {name:16s} {solver_name:22s} rtol {tol:.0e}: {taken} steps attempted, "
           f"{per_adaptive:.3f} ms each with the estimate; constant {accepted} steps "
           f"{per_constant:.3f} ms each; ratio {per_adaptive / per_constant:.1f}", flush=True)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
+from benchmarks.adaptive_steps import exact_step_of
 from diffrax_vi import problems
 
 NETWORK = dvi.ShallowNetBasis(dvi.tanh, 10)
@@ -61,17 +62,6 @@ def _one_step(problem, solver):
     return step
 
 
-def _exact_step(problem):
-    @eqx.filter_jit
-    def step(t0, h, y0):
-        sol = diffrax.diffeqsolve(
-            problem.term, diffrax.Dopri8(), t0, t0 + h, h / 16, y0, args=problem.args,
-            stepsize_controller=diffrax.PIDController(rtol=1e-15, atol=1e-17),
-            max_steps=100_000,
-        )  # fmt: skip
-        return jax.tree_util.tree_map(lambda a: a[-1], sol.ys)
-
-    return step
 
 
 def _largest(tree) -> float:
@@ -89,7 +79,7 @@ LOCAL_CASES = {
 def _ratios(name):
     make, steps = LOCAL_CASES[name]
     problem = make()
-    step, exact = _one_step(problem, dvi.CGVI(4, error_estimate=True)), _exact_step(problem)
+    step, exact = _one_step(problem, dvi.CGVI(4, error_estimate=True)), exact_step_of(problem)
     times = np.array([0.0, 1.3, 2.9])
     qs, ps = problem.reference(times)
     ratios = []
