@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffrax_vi.lagrange import lagrange_weights
+import diffrax_vi as dvi
+from diffrax_vi.lagrange import lagrange_values_and_slopes, lagrange_weights
 
 F64 = jnp.float64
 
@@ -49,3 +50,31 @@ def test_lagrange_weights_dtype_and_jit():
     w = jax.jit(lambda t: lagrange_weights(POINTS, t))(jnp.asarray(0.3, jnp.float32))
     assert w.dtype == jnp.float32
     assert float(jnp.sum(w)) == pytest.approx(1.0, abs=1e-5)
+
+
+@pytest.mark.parametrize("degree", [1, 3, 6, 10])
+def test_a_curve_continued_is_the_same_polynomial(degree):
+    # `advance` evaluates the Lagrange values at the next step's points as a polynomial in the
+    # step ratio (constant coefficients): the same curve to rounding, in the curve's dtype.
+    jax.config.update("jax_enable_x64", True)
+    basis = dvi.LagrangeBasis(degree)
+    theta = jnp.asarray(np.random.default_rng(degree).normal(size=(degree + 1, 2)))
+    points = jnp.asarray(basis.control_points)
+    for ratio in (1.0, 0.5, 1.7):
+        continued = basis.advance(theta, ratio)
+        direct = jax.vmap(lambda t: basis.evaluate(theta, t))(1 + ratio * points)
+        scale = float(jnp.max(jnp.abs(direct)))
+        assert float(jnp.max(jnp.abs(continued - direct))) <= 1e-14 * scale
+    assert basis.advance(theta.astype(jnp.float32), 0.5).dtype == jnp.float32
+
+
+def test_values_and_slopes_in_numpy_are_the_basis_and_its_derivative():
+    jax.config.update("jax_enable_x64", True)
+    taus = np.array([0.0, 0.1, 0.5, 0.9, 1.0, 1.3])
+    values, slopes = lagrange_values_and_slopes(POINTS, taus)
+    for i, tau in enumerate(taus):
+        value, slope = jax.jvp(lambda t: lagrange_weights(POINTS, t), (jnp.asarray(tau, F64),),
+                               (jnp.ones((), F64),))
+        np.testing.assert_allclose(values[i], np.asarray(value), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(slopes[i], np.asarray(slope), rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(values[0], np.eye(len(POINTS))[0])  # one-hot at a point

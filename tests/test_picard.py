@@ -298,3 +298,5 @@ def test_energy_error_follows_brouwers_law():
 def test_picard_must_be_a_bool():
     with pytest.raises(TypeError, match="picard"):
         FixedPointIteration(picard="yes")
+    with pytest.raises(TypeError, match="restart must be True or False"):
+        dvi.RoundoffNewton(restart=1)
