@@ -1,4 +1,4 @@
-"""The explicit symplectic solvers against Dopri8 (and heyoka where importable) on Kepler.
+"""The explicit symplectic solvers against Dopri8 and heyoka (where importable) on Kepler.
 
 Two measurements, in one process:
 
@@ -6,8 +6,13 @@ Two measurements, in one process:
   (PIDController) its final-state error is the target; each explicit method takes the fewest
   constant steps (on a grid of ratio 1.1) that reach an error at most the target, and both are
   timed side by side (best of `--repeats`), once alone and once under `jax.vmap` over
-  `--members` rotated copies of the orbit (the same orbit, so the same errors). Printed: each
-  method's steps, error and time, and the ratio of the fastest explicit method to Dopri8.
+  `--members` rotated copies of the orbit (the same orbit, so the same errors). Where heyoka
+  is importable (`diffrax_vi.bench.peers`) it runs in the same process: its tolerance swept
+  over a grid of ratio 10^(1/4) from 1e-6 to 1e-16, for each target the fastest tolerance whose
+  error is at most the target, alone (one `propagate_until`) and for the members (heyoka's
+  SIMD batch mode, `taylor_adaptive_batch`, one core, looped over chunks of its width; the
+  batch's own error must meet the target too). Printed: each method's steps, error and time,
+  the ratios to Dopri8, and the ratios of the fastest explicit method to Dopri8 and to heyoka.
 - **energy**: the energy error over 10⁶ constant Kepler steps of each order, the largest
   `|H − H₀|` over the first and over the last tenth of the run (bounded: the last tenth's
   within 3x the first's).
@@ -117,6 +122,52 @@ def steps_for(program, problem, reference, targets, start=16):
     return {t: found.get(t, (None, math.nan)) for t in targets}
 
 
+# heyoka's tolerances: a grid of ratio 10^(1/4) from 1e-6 to 1e-16 (its error is not
+# monotonic in the tolerance near round-off, so every point is measured).
+HEYOKA_TOLERANCES = tuple(10.0 ** (-k / 4) for k in range(24, 65))
+
+
+def heyoka_front(problem, reference, batch, batch_reference, targets, repeats: int):
+    """heyoka at each target error: `{target: (alone, members)}`, each `None` where no
+    tolerance of `HEYOKA_TOLERANCES` reaches the target, else `(tol, order, steps, error,
+    seconds)` of the fastest tolerance whose error is at most the target — alone one
+    `propagate_until` (best of `repeats`), for the members the SIMD batch mode looped over
+    chunks of its width (best of `repeats`, its error over all members). Also returns the
+    sweep's points `(tol, order, steps, error, alone_s, batch_error, batch_s)`."""
+    from diffrax_vi.bench.peers import HeyokaPeer
+
+    y0s = np.concatenate([np.asarray(x) for x in batch], axis=1)  # members × (q, p)
+    d = problem.dim
+    points = []
+    for tol in HEYOKA_TOLERANCES:
+        # heyoka's caches of compiled code left on: its build is not what is timed here
+        peer = HeyokaPeer(problem, tol, cold_compile=False)
+        run = peer.timed_run(repeats=repeats, reference=reference)
+        if run.outcome != "time_limit" or not run.state_error <= max(targets):
+            points.append((tol, peer.order, run.steps, run.state_error, run.wall_s, math.nan,
+                           math.nan))
+            continue
+        many = peer.propagate_many(y0s, float(problem.t1), method="batch", repeats=repeats)
+        batch_err = state_error((many.states[:, :d], many.states[:, d:]), batch_reference)
+        points.append((tol, peer.order, run.steps, run.state_error, run.wall_s, batch_err,
+                       many.wall_s))
+    # Neighbouring tolerances often give heyoka the same order and the same steps, hence the
+    # same run: one configuration, represented by its largest tolerance, timed by the best of
+    # all its runs (otherwise the choice among equal runs is the timer's noise).
+    same: dict[tuple, list] = {}
+    for p in points:
+        same.setdefault((p[1], p[2], p[3], p[5]), []).append(p)
+    merged = [(max(g, key=lambda p: p[0])[0], *g[0][1:4], min(p[4] for p in g), g[0][5],
+               min(p[6] for p in g)) for g in same.values()]
+    found = {}
+    for target in targets:
+        alone = [p for p in merged if p[3] <= target]
+        members = [p for p in merged if p[5] <= target]
+        found[target] = (min(alone, key=lambda p: p[4]) if alone else None,
+                         min(members, key=lambda p: p[6]) if members else None)
+    return found, points
+
+
 def fronts(repeats: int, members: int, names=None) -> None:
     problem = dvi.problems.kepler(0.5, t1=2 * math.pi * ORBITS)
     qr, pr = problem.reference(np.array([problem.t1]))
@@ -124,7 +175,8 @@ def fronts(repeats: int, members: int, names=None) -> None:
     batch, rot = rotated_members(problem.y0, members)
     batch_reference = tuple(np.einsum("mij,j->mi", rot, r) for r in reference)
     print(f"Kepler e = 0.5, {ORBITS} orbits; errors max |state - exact| at t1; wall time best "
-          f"of {repeats}; vmap over {members} rotated copies")
+          f"of {repeats}; vmap over {members} rotated copies (heyoka's rows: its batch mode "
+          f"over the same {members} copies in the vmap columns); ratios to Dopri8")
     targets, dopri = {}, {}
     for tol in TOLERANCES:
         run = jax.jit(dopri8_program(problem, tol))
@@ -135,13 +187,17 @@ def fronts(repeats: int, members: int, names=None) -> None:
                       best_of(lambda b=batched: b(batch), repeats))
         print(f"Dopri8 rtol={tol:g}: error {err:.2e}, alone {dopri[tol][1] * 1e3:.2f} ms, "
               f"vmap {dopri[tol][2] * 1e3:.1f} ms")
+    heyoka = None
     if heyoka_available():
-        from diffrax_vi.bench.peers import HeyokaPeer
-
-        for tol in (1e-10, 1e-13, 1e-15):
-            peer = HeyokaPeer(problem, tol)
-            r = peer.timed_run(repeats=repeats)
-            print(f"heyoka tol={tol:g}: error {r.state_error:.2e}, alone {r.wall_s * 1e3:.2f} ms")
+        heyoka, points = heyoka_front(problem, reference, batch, batch_reference,
+                                      list(targets.values()), repeats)
+        print(f"heyoka (float64, tolerances 1e-6..1e-16 by 10^(1/4); members: batch mode of "
+              f"SIMD width {_simd_width()}, one core): error against the tolerance")
+        for tol, order, steps, err, alone, batch_err, many in points:
+            extra = "" if math.isnan(many) else \
+                f", members error {batch_err:.2e} in {many * 1e3:.1f} ms"
+            print(f"  tol={tol:.2e} order {order:2d} {steps:4d} steps: error {err:.2e}, "
+                  f"alone {alone * 1e3:.3f} ms{extra}")
     else:
         print("heyoka: not importable here (pip install heyoka to add it)")
     rows = {tol: [] for tol in TOLERANCES}
@@ -169,7 +225,12 @@ def fronts(repeats: int, members: int, names=None) -> None:
               f"{vm * 1e3:.1f} ms vmap):")
         print(f"  {'method':30s} {'steps':>7s} {'error':>9s} {'vmap err':>9s} "
               f"{'alone ms':>9s} {'ratio':>6s} {'vmap ms':>9s} {'ratio':>6s}")
-        for name, n, e, ve, a, v in sorted(rows[tol], key=lambda r: r[4]):
+        table = list(rows[tol])
+        if heyoka is not None:
+            chosen_points = {p[0]: p for p in heyoka[err] if p is not None}
+            for p_tol, order, steps, e, a, ve, v in chosen_points.values():
+                table.append((f"heyoka(tol={p_tol:.1e}, order {order})", steps, e, ve, a, v))
+        for name, n, e, ve, a, v in sorted(table, key=lambda r: r[4]):
             print(f"  {name:30s} {n:7d} {e:9.2e} {ve:9.2e} {a * 1e3:9.2f} {a / alone:6.3f} "
                   f"{v * 1e3:9.1f} {v / vm:6.3f}")
         explicit = [r for r in rows[tol] if r[0] in METHODS]
@@ -178,6 +239,28 @@ def fronts(repeats: int, members: int, names=None) -> None:
             fast_vm = min(explicit, key=lambda r: r[5])
             print(f"  fastest alone: {fast[0]} at {fast[4] / alone:.3f}x Dopri8's time; "
                   f"fastest under vmap: {fast_vm[0]} at {fast_vm[5] / vm:.3f}x")
+        if heyoka is None:
+            continue
+        h_alone, h_many = heyoka[err]
+        for what, point in (("alone", h_alone), ("members", h_many)):
+            if point is None:
+                print(f"  heyoka {what}: no tolerance down to 1e-16 reaches {err:.2e}")
+                continue
+            p_tol, order, _, e, a, ve, v = point
+            print(f"  heyoka fastest {what}: tol={p_tol:.1e} (order {order}), error "
+                  f"{e if what == 'alone' else ve:.2e}, "
+                  + (f"{a * 1e3:.3f} ms alone, {a / alone:.4f}x Dopri8" if what == "alone"
+                     else f"{v * 1e3:.2f} ms for {members} members, {v / vm:.4f}x Dopri8"))
+        if explicit and h_alone is not None and h_many is not None:
+            print(f"  fastest explicit / heyoka: alone {fast[4] / h_alone[4]:.1f}x "
+                  f"({fast[0]}), {members} members {fast_vm[5] / h_many[6]:.2f}x "
+                  f"({fast_vm[0]} under vmap against heyoka's batch mode)")
+
+
+def _simd_width() -> int:
+    from diffrax_vi.bench.peers import require_heyoka
+
+    return int(require_heyoka().recommended_simd_size())
 
 
 def energy_growth(solver, h: float, steps: int, problem=None) -> tuple[float, float]:
