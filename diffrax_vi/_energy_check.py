@@ -28,10 +28,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array
 
-from .linalg import elimination_solve
+from .linalg import regular_inverse
 from .picard import kinetic_structure, used_inputs
 from .results import JUMP_TOLERANCE
 from .terms import LagrangianTerm
@@ -58,7 +57,8 @@ def applies(term, t, q: Array, args) -> bool:
         return term_.constraint_values(t, q, args_)
 
     structure = kinetic_structure(term, t, q, args)
-    if structure is not None and structure.mass is not None and not _regular(structure.mass, q):
+    if (structure is not None and structure.mass is not None
+            and regular_inverse(structure.mass, q.dtype) is None):
         return False  # a degenerate Lagrangian: no velocity map, no energy of (q, p)
     try:
         if used_inputs(lagrangian, t, q, dynamic)[0]:
@@ -70,40 +70,9 @@ def applies(term, t, q: Array, args) -> bool:
     return True
 
 
-def _regular(mass: np.ndarray, q: Array) -> bool:
-    return bool(np.all(np.isfinite(mass)) and np.linalg.cond(mass) < 1 / np.finfo(q.dtype).eps)
-
-
-def _velocity(term: LagrangianTerm, t, q: Array, p: Array, args) -> Array:
-    """The velocity of `(q, p)`: the term's closed form, else its Newton iterations from
-    `v = 0` (by elimination: no library call in the step), with the kinetic matrix's inverse
-    taken when the step is traced where it is constant and known."""
-    if term.velocity_map is not None:
-        return term.velocity_map(t, q, p, args).astype(q.dtype)
-
-    def momentum(v):
-        return jax.grad(term.__call__, argnums=2)(t, q, v, args)
-
-    structure = kinetic_structure(term, t, q, args)
-    if structure is not None and structure.mass_constant and structure.mass is not None:
-        mass = structure.mass
-        if _regular(mass, q):
-            # quadratic in v: one Newton step from rest is exact
-            w = p - momentum(jnp.zeros_like(q))
-            if np.array_equal(mass, np.eye(q.size)):
-                return w
-            minv = jnp.asarray(np.linalg.inv(mass), q.dtype)
-            return jnp.sum(minv * w[None, :], axis=1)
-    v = jnp.zeros_like(q)
-    for _ in range(term.legendre_iterations):
-        mass = jax.jacfwd(momentum)(v)
-        v = v - elimination_solve(mass, momentum(v) - p)
-    return v
-
-
 def energy_and_scale(term: LagrangianTerm, t, q: Array, p: Array, args) -> tuple[Array, Array]:
     """`(H, S)`: the energy `p·v − L(q, v)` of `(q, p)` and its scale `|p·v| + |L(q, v)|`."""
-    v = _velocity(term, t, q, p, args)
+    v = term.legendre_inverse(t, q, p, args, in_step=True)
     pv = jnp.sum(p * v)
     lagrangian = term(t, q, v, args)
     return pv - lagrangian, jnp.abs(pv) + jnp.abs(lagrangian)

@@ -33,7 +33,10 @@ from jaxtyping import Array
 
 from .precision import lapack_dtype
 
-__all__ = ["DEGENERATE_START_MESSAGE", "blind_directions", "refuse_degenerate_start"]
+__all__ = [
+    "DEGENERATE_START_MESSAGE", "blind_directions", "kinetic_matrix_regular",
+    "refuse_degenerate_start",
+]
 
 SINGULAR_AT_START = "degenerate Lagrangian: the kinetic matrix ∂²L/∂v² is singular at the start"
 DEGENERATE_START_MESSAGE = (
@@ -131,6 +134,27 @@ def _generically_regular(blocks, ctx, dynamic, static, tol: float) -> bool:
     if not np.all(np.isfinite(mass)):
         return False
     return blind_directions([mass], np.eye(size), tol).shape[1] == 0
+
+
+def kinetic_matrix_regular(ctx) -> bool:
+    """Whether the term's kinetic matrix is known, when the step is traced, to be regular at
+    a random state: constant and regular, or varying and regular there. Such a matrix
+    vanishes nowhere but at special states, so its end states need no first-order
+    correction. `False` where this cannot be told now (a constrained term, an `IODETerm`,
+    parameters that are traced)."""
+    from .terms import LagrangianTerm
+
+    if not isinstance(ctx.term, LagrangianTerm) or ctx.term.has_constraints:
+        return False
+    if jnp.ndim(ctx.q0) != 1:
+        return False
+    size = ctx.q0.shape[0]
+    tol = _tolerance(ctx.q0.dtype, size)
+    mass = _known_mass(ctx)
+    if mass is not None:
+        return blind_directions([mass], np.eye(size), tol).shape[1] == 0
+    dynamic, static = eqx.partition((ctx.term, ctx.args), eqx.is_array)
+    return _generically_regular(_blocks(ctx.term, static), ctx, dynamic, static, tol)
 
 
 def _mass_block(blocks):

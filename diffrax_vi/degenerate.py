@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from ._kinetic_check import kinetic_matrix_regular
 from .formulation import StepContext
 from .precision import lapack_dtype
 
@@ -105,6 +106,8 @@ def end_on_constraint(ctx: StepContext, q1: Array, p1: Array, correct: bool = Tr
     functions give there, and only a first-order end state forms `∂ϑ/∂q` and the SVD of the
     correction (where `ϑ` does not read `v` at `q1`, it does not at the moved point either:
     the move is of the size of the step's error)."""
+    if kinetic_matrix_regular(ctx):  # never first order but at special states: nothing to do
+        return q1, jnp.zeros((), jnp.result_type(q1, p1))
     at_rest, theta = _momentum_map(ctx)
 
     def on_constraint(q1, p1):

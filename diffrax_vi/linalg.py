@@ -14,8 +14,9 @@ from jaxtyping import Array
 
 from .precision import lapack_dtype
 
-__all__ = ["solve", "damped_least_squares", "dense_tangent_solve", "elimination_solve",
-           "unpivoted_inverse", "well_conditioned"]
+__all__ = ["solve", "constant_outer", "constant_product", "damped_least_squares",
+           "dense_tangent_solve", "elimination_solve", "regular_inverse", "unpivoted_inverse",
+           "well_conditioned"]
 
 
 def solve(matrix: Array, rhs: Array) -> Array:
@@ -200,3 +201,48 @@ def well_conditioned(matrix) -> bool:
     """Whether a matrix known when the step is traced is invertible well within float64
     (condition number below 1e12): e.g. a regular Lagrangian's constant kinetic matrix."""
     return bool(np.linalg.cond(np.asarray(matrix)) < 1e12)
+
+
+def regular_inverse(matrix: np.ndarray, dtype) -> np.ndarray | bool | None:
+    """The inverse of a matrix known when the step is traced (NumPy), `True` for the
+    identity, or `None` where it is singular in `dtype` (condition number past 1/eps)."""
+    matrix = np.asarray(matrix, np.float64)
+    if not np.all(np.isfinite(matrix)) or np.linalg.cond(matrix) >= 1 / np.finfo(dtype).eps:
+        return None
+    if np.array_equal(matrix, np.eye(matrix.shape[0])):
+        return True
+    return np.linalg.inv(matrix)
+
+
+def constant_product(matrix: np.ndarray, values: Array, fused: bool = True) -> Array:
+    """`matrix @ values` for a constant `matrix` (`(m, n)` against `(n, D)`), laid out for
+    how it runs: alone, as one fused multiply and a reduction over the minor axis (a `dot`
+    of these sizes costs more in its call than in its arithmetic); under `vmap`, as one
+    batched `dot` (where the fused form's reduction runs over a strided axis). `fused=False`
+    keeps the multiply-reduce form under `vmap` too, for what is differentiated (the batching
+    rule has no derivative rule) and for loops that must hold no call of the dot library
+    (`newton_solve`)."""
+    constant = np.asarray(matrix, np.float64)
+
+    def product(values):
+        m = jnp.asarray(constant, values.dtype)
+        return jnp.sum(m[None, :, :] * values.T[:, None, :], axis=-1).T
+
+    if not fused:
+        return product(values)
+    apply = jax.custom_batching.custom_vmap(product)
+
+    @apply.def_vmap
+    def _batched(axis_size, in_batched, values):
+        del axis_size
+        if not in_batched[0]:
+            return product(values), False
+        m = jnp.asarray(constant, values.dtype)
+        return jnp.einsum("ij,bjd->bid", m, values), True
+
+    return apply(values)
+
+
+def constant_outer(vector: np.ndarray, row: Array) -> Array:
+    """`vector ⊗ row` for a constant `vector`."""
+    return jnp.stack([float(c) * row for c in np.asarray(vector)])

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -35,19 +36,19 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
 from .lagrange import continuation_coefficients
-from .linalg import elimination_solve, well_conditioned
+from .linalg import constant_outer, constant_product, elimination_solve, well_conditioned
 
 __all__ = [
     "KineticStructure", "PicardPlan", "PicardSolve", "extrapolation", "kinetic_structure",
     "evaluated_now", "picard_engine", "picard_plan", "picard_solve", "newton_solve",
-    "start_at_rest", "step_residual", "used_inputs",
+    "start_at_rest", "used_inputs",
 ]
 
 # Updates made first without any test (their changes are not even measured), then updates
 # made without a test in between (they measure the changes that the first test reads), before
 # the loop that tests each one: a step that contracts as most do ends without entering it.
-PLAIN = 2
-UNROLLED = 3
+PLAIN = 0
+UNROLLED = 0
 # Updates at most before the iteration is handed to the root finder's own.
 MAX_UPDATES = 40
 # Stop once the predicted remaining change of the forces is below 1/PREDICT_MARGIN of a
@@ -201,25 +202,15 @@ def picard_engine(allowed: bool, formulation, ctx):
 
 
 class PicardPlan(NamedTuple):
-    """The constant maps of the iteration (NumPy float64), for one span and rule.
-
-    The start: `xf, xg` (`(k + 1) × R`), `xp` (`k + 1`) map node values to the unknowns
-    `X = [δc M / h; Δp]`; `kinv`, the inverse of the kinetic part of the equations' Jacobian
-    in `X`. The step's equations: `gq`, `gv`
-    (`R × k`), the span's values and slopes at the nodes; `b` (`R`), the rule's weights;
-    `g0`, `gd` (`k`), the directions' values at `τ = 0` and changes over the step; `live`
-    (`k`), the directions kept."""
+    """The constant maps of the iteration (NumPy float64), for one span and rule: `xf, xg`
+    (`(k + 1) × R`), `xp` (`k + 1`) map node values to the unknowns `X = [δc M / h; Δp]`;
+    `kinv`, the inverse of the kinetic part of the equations' Jacobian in `X`. The equations
+    themselves are the formulation's (`VariableProjection.reduced_residual_and_forces`)."""
 
     xf: np.ndarray
     xg: np.ndarray
     xp: np.ndarray
     kinv: np.ndarray
-    gq: np.ndarray
-    gv: np.ndarray
-    b: np.ndarray
-    g0: np.ndarray
-    gd: np.ndarray
-    live: np.ndarray
 
 
 def picard_plan(span, weights) -> PicardPlan | None:
@@ -255,44 +246,7 @@ def picard_plan(span, weights) -> PicardPlan | None:
     # the residual's continuity row is −Σ_k g0_k δc_k
     jacobian = block.copy()
     jacobian[k, :k] = -g0
-    return PicardPlan(
-        xf=xf, xg=xg, xp=xp, kinv=np.linalg.inv(jacobian),
-        gq=gq, gv=gv, b=b, g0=g0, gd=gd, live=live,
-    )
-
-
-def _combine(matrix: np.ndarray, values: Array, fused: bool = True) -> Array:
-    """`matrix @ values` for a constant `matrix` (`(m, n)` against `(n, D)`), laid out for
-    how it runs: alone, as one fused multiply and a reduction over the minor axis (a `dot`
-    of these sizes costs more in its call than in its arithmetic); under `vmap`, as one
-    batched `dot` (where the fused form's reduction runs over a strided axis). `fused=False`
-    keeps the multiply-reduce form under `vmap` too, for what is differentiated (the batching
-    rule has no derivative rule) and for loops that must hold no call of the dot library
-    (`newton_solve`)."""
-    constant = np.asarray(matrix, np.float64)
-
-    def product(values):
-        m = jnp.asarray(constant, values.dtype)
-        return jnp.sum(m[None, :, :] * values.T[:, None, :], axis=-1).T
-
-    if not fused:
-        return product(values)
-    apply = jax.custom_batching.custom_vmap(product)
-
-    @apply.def_vmap
-    def _batched(axis_size, in_batched, values):
-        del axis_size
-        if not in_batched[0]:
-            return product(values), False
-        m = jnp.asarray(constant, values.dtype)
-        return jnp.einsum("ij,bjd->bid", m, values), True
-
-    return apply(values)
-
-
-def _outer(vector: np.ndarray, row: Array) -> Array:
-    """`vector ⊗ row` for a constant `vector`."""
-    return jnp.stack([float(c) * row for c in np.asarray(vector)])
+    return PicardPlan(xf=xf, xg=xg, xp=xp, kinv=np.linalg.inv(jacobian))
 
 
 class PicardSolve(NamedTuple):
@@ -309,6 +263,16 @@ class PicardSolve(NamedTuple):
     converged: Array
     failure: Array
     start: tuple[Array, Array]
+
+    def result(self):
+        """The step's `RESULTS`: successful where it converged, else what ended it."""
+        from .results import STEP_FAILURES
+
+        where = diffrax.RESULTS.where
+        ended = where(self.failure == 1, STEP_FAILURES["vi_step_stalled"],
+                      STEP_FAILURES["vi_step_max_iterations"])
+        ended = where(self.failure == 0, STEP_FAILURES["vi_step_nonfinite"], ended)
+        return where(self.converged, diffrax.RESULTS.successful, ended)
 
 
 class _Carry(NamedTuple):
@@ -341,8 +305,8 @@ def _kinetic(structure: KineticStructure, ctx) -> _Kinetic:
         if np.array_equal(mass_np, np.eye(dim)):
             return _Kinetic(lambda x: x, lambda x: x)
         minv_np = np.linalg.inv(mass_np)
-        return _Kinetic(lambda x: _combine(mass_np.T, x.T).T,
-                        lambda x: _combine(minv_np.T, x.T).T)
+        return _Kinetic(lambda x: constant_product(mass_np.T, x.T).T,
+                        lambda x: constant_product(minv_np.T, x.T).T)
     mass = jax.hessian(lambda v: ctx.term(ctx.t, ctx.q0, v, ctx.args))(jnp.zeros_like(ctx.q0))
     minv = jnp.linalg.inv(mass)
     return _Kinetic(lambda x: x @ mass, lambda x: x @ minv)
@@ -420,12 +384,13 @@ def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
     live = span.live
 
     f0, g0 = (a.astype(dtype) for a in start)
-    x = h * _combine(plan.xf, f0) + _combine(plan.xg, g0) + _outer(plan.xp, p0)
+    x = (h * constant_product(plan.xf, f0) + constant_product(plan.xg, g0)
+         + constant_outer(plan.xp, p0))
     z0 = (jnp.where(live, h * kinetic.times_minv(x[:k]), 0).astype(dtype), x[k].astype(dtype))
 
     def correction(z, r, cont):
         rows = jnp.concatenate([jnp.where(live, r, 0), kinetic.times_mass(cont[None]) / h])
-        dx = -_combine(plan.kinv, rows)
+        dx = -constant_product(plan.kinv, rows)
         return jnp.where(live, h * kinetic.times_minv(dx[:k]), 0), dx[k]
 
     end = _iterate(z0, f0, residual, correction, UNROLLED, PLAIN)
@@ -436,7 +401,7 @@ def newton_solve(structure: KineticStructure, ctx, span, start: PicardSolve,
                 residual, differentiable) -> PicardSolve:
     """The same equations by Newton's iteration, `z ← z − J(z)⁻¹ (r, c)` with the whole
     Jacobian `J` (forward derivatives of `differentiable`, the same equations written so that
-    they have derivatives: `step_residual(..., fused=False)`), from the Jacobian-free
+    they have derivatives: `fused=False`), from the Jacobian-free
     iteration's start: for a step that iteration does not contract on (a stiff force at a
     long step). It stops by the same rules, and fails where it does not converge either."""
     z0 = start.start
@@ -556,36 +521,6 @@ def _solved(structure, ctx, span, kinetic: _Kinetic | None, end: _Carry, g0, z0
                        stats[_RESIDUAL].astype(dtype), stats[_CONVERGED] != 0, failure, z0)
 
 
-def step_residual(plan: PicardPlan, ctx, z, fused: bool = True
-                  ) -> tuple[tuple[Array, Array], Array]:
-    """The projected step's equations at `z = (δc, Δp)` on a uniform span
-    (`VariableProjection.reduced_residual_and_forces`, with the span's constants as NumPy
-    arrays): `((r, c), f)`, `r` along each direction (`δc` itself where pinned), `c` the
-    continuity `−Σ_k g0_k δc_k`, `f` the forces at the nodes. `fused=False` writes its
-    products plainly, for a Jacobian."""
-    dc, dp = z
-    dtype = dc.dtype
-    h, p0 = ctx.h, ctx.p0
-    r_nodes = plan.gq.shape[0]
-    # values, slopes and −g0·δc as one product; the weighted sums of forces and momenta as
-    # another (a product is a kernel of its own)
-    curve = _combine(np.concatenate([plan.gq, plan.gv, -plan.g0[None]]), dc, fused)
-    q = ctx.q0 + curve[:r_nodes]
-    v = curve[r_nodes:2 * r_nodes] / h
-    c = curve[2 * r_nodes]
-    p, f = _momenta_and_forces(ctx, q, v)
-    # the weights multiply the node values here, not the constant maps: `gq`, `gv` must be
-    # the very numbers that placed the curve, or the equations are no longer the exact
-    # stationarity of one discrete action (a fixed rounding of `b·gq` is a drift, not noise)
-    b = jnp.asarray(plan.b, dtype)[:, None]
-    sums = _combine(np.concatenate([plan.gq, plan.gv]).T,
-                    jnp.concatenate([(h * b) * f, b * p.astype(dtype)]), fused)
-    g0, gd = (jnp.asarray(a, dtype)[:, None] for a in (plan.g0, plan.gd))
-    r = dp * g0 + dp * gd + p0 * gd - sums
-    r = jnp.where(jnp.asarray(plan.live)[:, None], r, dc)
-    return (r, c), f
-
-
 def _curve_at_nodes(span, dc, q0):
     gq, gv = (np.asarray(a, np.float64)[0] for a in (span.gq, span.gv))
-    return q0 + _combine(gq, dc), _combine(gv, dc)
+    return q0 + constant_product(gq, dc), constant_product(gv, dc)

@@ -42,12 +42,22 @@ from .formulation import (
 )
 from .hidden_layers import AbstractHiddenLayer, UniformLayer
 from .lagrange import lagrange_values_and_slopes
-from .linalg import unpivoted_inverse
+from .linalg import constant_product, unpivoted_inverse
 from .precision import lapack_dtype
 from .projected_solve import solve_projected
 from .span import ProjectedSpan, any_traced, feature_span
 
 __all__ = ["KineticInverse", "VariableProjection"]
+
+
+def _uniform_constants(span: ProjectedSpan):
+    """`(gq, gv, g0, gd, live)` as NumPy (`(R, k)`, `(R, k)`, `(k,)`, `(k,)`, `(k,)`) where
+    `span` is known when the step is traced and the same in every coordinate
+    (`VariableProjection.uniform_span`), else `None`."""
+    if not VariableProjection.uniform_span(span):
+        return None
+    gq, gv, g0, gd = (np.asarray(a, np.float64)[0] for a in (span.gq, span.gv, span.g0, span.gd))
+    return gq, gv, g0, gd, np.asarray(span.live)[:, 0]
 
 
 def _projectable(basis: AbstractBasis) -> bool:
@@ -283,25 +293,52 @@ class VariableProjection(FreeEndpoints):
         rounding of its own size."""
         return self.reduced_residual_and_forces(z, args)[0]
 
-    def reduced_residual_and_forces(self, z, args) -> tuple[tuple[Array, Array], Array]:
+    def reduced_residual_and_forces(self, z, args, fused: bool = False
+                                    ) -> tuple[tuple[Array, Array], Array]:
         """`reduced_residual` and the forces `∂L/∂q` at the nodes (`(R, D)`) it evaluated
-        on the way: the step's dense output reads them at the converged `z`."""
+        on the way: the step's dense output reads them at the converged `z`.
+
+        On a span known when the step is traced and the same in every coordinate, its
+        products are with constant matrices (`linalg.constant_product`; `fused` lays them
+        out for a loop that is not differentiated, as the Jacobian-free iteration's); else
+        with the span's arrays. The rule's weights multiply the node values, not the
+        span's constants: those must be the very numbers that placed the curve, or the
+        equations are no longer the exact stationarity of one discrete action (a fixed
+        rounding of `b·gq` would be a drift, not noise)."""
         ctx, span = args[0], args[1]
         dc, dp = z
-        q, dq = self.node_values(dc, span, ctx.q0)
+        dtype = dc.dtype
+        h = ctx.h
+        b = ctx.weights.astype(dtype)[:, None]
+        uniform = _uniform_constants(span)
+        if uniform is not None:
+            gq, gv, g0, gd, live = uniform
+            r_nodes = gq.shape[0]
+            # values, slopes and −g0·δc as one product; the weighted sums as another
+            curve = constant_product(np.concatenate([gq, gv, -g0[None]]), dc, fused)
+            q, dq, c = ctx.q0 + curve[:r_nodes], curve[r_nodes:2 * r_nodes], curve[2 * r_nodes]
+        else:
+            q, dq = self.node_values(dc, span, ctx.q0)
+            c = -jnp.einsum("dk,kd->d", span.g0, dc)
         p, f = node_momenta_and_forces(ctx, q, dq)
-        b = ctx.weights.astype(dc.dtype)
+        if uniform is not None:
+            sums = constant_product(np.concatenate([gq, gv]).T,
+                                    jnp.concatenate([(h * b) * f, b * p.astype(dtype)]), fused)
+            g0, gd = (jnp.asarray(a, dtype)[:, None] for a in (g0, gd))
+            live = jnp.asarray(live)[:, None]
+        else:
+            b = b[:, 0]
+            if dc.shape[1] == 1:
+                forces = jnp.einsum("j,jd,djk->kd", h * b, f, span.gq)
+                momenta = jnp.einsum("j,jd,djk->kd", b, p, span.gv)
+            else:  # both as one batched product (fewer kernels; the same values)
+                forces, momenta = jax.vmap(functools.partial(jnp.einsum, "j,jd,djk->kd"))(
+                    jnp.stack([h * b, b]), jnp.stack([f, p]), jnp.stack([span.gq, span.gv]))
+            sums = forces + momenta
+            g0, gd, live = span.g0.T, span.gd.T, span.live
         # p_{n+1} g1 − p_n g0 with g1 = g0 + gd, p_{n+1} = p_n + Δp, term by term
-        if dc.shape[1] == 1:
-            forces = jnp.einsum("j,jd,djk->kd", ctx.h * b, f, span.gq)
-            momenta = jnp.einsum("j,jd,djk->kd", b, p, span.gv)
-        else:  # both as one batched product (fewer kernels; the same values)
-            forces, momenta = jax.vmap(functools.partial(jnp.einsum, "j,jd,djk->kd"))(
-                jnp.stack([ctx.h * b, b]), jnp.stack([f, p]), jnp.stack([span.gq, span.gv])
-            )
-        r = dp * span.g0.T + dp * span.gd.T + ctx.p0 * span.gd.T - forces - momenta
-        r = jnp.where(span.live, r, dc)
-        return (r, -jnp.einsum("dk,kd->d", span.g0, dc)), f
+        r = dp * g0 + dp * gd + ctx.p0 * gd - sums
+        return (jnp.where(live, r, dc), c), f
 
     def _at_nodes(self, z, args):
         """What the Jacobians of the reduced residual start from: the step context, the

@@ -14,6 +14,7 @@ import optimistix as optx
 
 from ._energy_check import applies as energy_check_applies
 from ._energy_check import relative_jump
+from ._kinetic_check import kinetic_matrix_regular
 from .ansatz.base import AbstractBasis
 from .ansatz.shallow import ShallowNetBasis
 from .companion import companion_error, estimate_order
@@ -49,7 +50,6 @@ from .picard import (
     picard_engine,
     picard_solve,
     start_at_rest,
-    step_residual,
 )
 from .precision import compensated_add
 from .projected_solve import with_known_span
@@ -311,7 +311,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         else:
             (q1, p1), compensation, violation = solved.end, state.compensation, None
         q1, p1 = q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype)
-        if violation is None:
+        if violation is None and not kinetic_matrix_regular(ctx):
             _, violation = end_on_constraint(ctx, q1, p1, correct=False)
         return self._finish_step(
             ctx, state, record, seed, solved.theta, q1, p1, solved.iterations, solved.result,
@@ -355,30 +355,22 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
 
         def solve(ctx, f_start, g_start):
             def residual_and_forces(z):
-                return step_residual(plan, ctx, z)
+                return form.reduced_residual_and_forces(z, (ctx, span, None), fused=True)
 
             picard = picard_solve(plan, structure, ctx, span, (f_start, g_start),
                                   residual_and_forces)
 
             def fallback():
                 return newton_solve(structure, ctx, span, picard, residual_and_forces,
-                                   lambda z: step_residual(plan, ctx, z, fused=False))
+                                   lambda z: form.reduced_residual_and_forces(z, (ctx, span, None)))
 
             restarted = jnp.array(False)
             solved = picard
             if traits_of(self.root_finder).picard_falls_back():
                 solved = unless_all_skip(~picard.converged, fallback, picard)
                 restarted = ~picard.converged
-            result = diffrax.RESULTS.where(
-                solved.converged, diffrax.RESULTS.successful,
-                diffrax.RESULTS.where(
-                    solved.failure == 0, STEP_FAILURES["vi_step_nonfinite"],
-                    diffrax.RESULTS.where(solved.failure == 1, STEP_FAILURES["vi_step_stalled"],
-                                          STEP_FAILURES["vi_step_max_iterations"]),
-                ),
-            )
-            return solved.unknowns, (solved.values, solved.iterations, result, solved.residual,
-                                     restarted)
+            return solved.unknowns, (solved.values, solved.iterations, solved.result(),
+                                     solved.residual, restarted)
 
         # The iteration runs on values without derivatives (the root's come below): nothing of
         # it is differentiated or kept for a derivative.
@@ -417,7 +409,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         (q1, p1), y_error, dense_info, new_state, result = self._finish_step(
             ctx, state, record, Seed(None, no, no), theta, q1, p1, solved.iterations,
             solved.result, solved.residual.astype(dtype), solved.tolerance.astype(dtype), no,
-            compensation, jnp.zeros((), dtype), forces,
+            compensation, None, forces,
         )
         drift = jnp.maximum(state.holonomic_drift, solved.drift.astype(dtype))
         ok = result == diffrax.RESULTS.successful
@@ -441,7 +433,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             q1, p1 = ctx.q0 + dq.astype(ctx.q0.dtype), ctx.p0 + dp.astype(ctx.p0.dtype)
             compensation = state.compensation
         if not on_constraint:
-            return q1, p1, compensation, jnp.zeros((), ctx.q0.dtype)
+            return q1, p1, compensation, None
         moved, violation = end_on_constraint(ctx, q1, p1)
         compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
         return moved, p1, compensation, violation
@@ -462,6 +454,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # `init`'s run-time check of the times is part of every solve's program.
         invalid = (ctx.h == 0) | ~jnp.isfinite(ctx.h) | ~jnp.isfinite(state.report.t)
         result = diffrax.RESULTS.where(invalid, STEP_FAILURES["vi_step_size_invalid"], result)
+        if violation is None:  # no primary constraint, known when traced: nothing to track
+            constraint = jnp.zeros((), ctx.q0.dtype)
+            first = jnp.where(jnp.isnan(state.first_constraint), 0, state.first_constraint)
+            result, jump = self._energy_jump(ctx, q1, p1, result)
+            return finite, result, constraint, first, jump
         scale = residual_scale(ctx)
         constraint = (violation / scale).astype(ctx.q0.dtype)
         first = jnp.where(jnp.isnan(state.first_constraint), constraint, state.first_constraint)
@@ -478,17 +475,21 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             STEP_FAILURES["vi_constraint_drift"],
             result,
         )
-        # A converged step whose energy jumped far past the method's error is a wrong root.
+        result, jump = self._energy_jump(ctx, q1, p1, result)
+        return finite, result, constraint, first, jump
+
+    def _energy_jump(self, ctx, q1, p1, result):
+        """`(result, jump)`: a converged step whose energy jumped far past the method's error
+        is a wrong root (`vi_step_energy_jump`); `jump` is 0 where it is not checked."""
         jump = jnp.zeros((), ctx.q0.dtype)
         if self.energy_check and energy_check_applies(ctx.term, ctx.t, ctx.q0, ctx.args):
-            jump = relative_jump(ctx.term, ctx.t, ctx.q0, ctx.p0, q1, p1,
-                                               ctx.args)
+            jump = relative_jump(ctx.term, ctx.t, ctx.q0, ctx.p0, q1, p1, ctx.args)
             result = diffrax.RESULTS.where(
                 (jump > JUMP_TOLERANCE) & (result == diffrax.RESULTS.successful),
                 STEP_FAILURES["vi_step_energy_jump"],
                 result,
             )
-        return finite, result, constraint, first, jump
+        return result, jump
 
     def _finish_step(
         self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,

@@ -305,13 +305,7 @@ class LagrangianTerm(AbstractMechanicalTerm):
         """Inverse Legendre map `p ↦ v`: closed form if given, else Newton from `v = 0`."""
         if self.velocity_map is not None:
             return self.velocity_map(t, q, p, args)
-        momentum = lambda v: jax.grad(self.__call__, argnums=2)(t, q, v, args)
-
-        def newton(_, v):
-            mass = jax.jacfwd(momentum)(v)
-            return v - solve(mass, momentum(v) - p)
-
-        v = jax.lax.fori_loop(0, self.legendre_iterations, newton, jnp.zeros_like(q))
+        v = self.legendre_inverse(t, q, p, args)
         # A degenerate Lagrangian (∂²L/∂v² singular) has no velocity map: refuse it loudly
         # rather than hand NaN velocities to an explicit solver.
         finite_input = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p))
@@ -322,6 +316,40 @@ class LagrangianTerm(AbstractMechanicalTerm):
             "singular: a degenerate Lagrangian). Explicit diffrax solvers need the velocity; "
             "integrate degenerate systems with NetworkVI (e.g. as an IODETerm).",
         )
+
+    def legendre_inverse(self, t, q, p, args, *, in_step: bool = False) -> Array:
+        """The velocity at which `∂L/∂v = p`, unchecked (NaN where the kinetic matrix is
+        singular): the closed form if given; one Newton update from rest where the kinetic
+        matrix is constant, known when traced and regular (the momentum is affine in `v`:
+        exact); else `legendre_iterations` Newton updates from `v = 0`. `in_step` writes
+        the updates out, solved by elimination, for use inside a step (a loop or a library
+        call there costs more than the arithmetic)."""
+        if self.velocity_map is not None:
+            return self.velocity_map(t, q, p, args).astype(q.dtype)
+        from .linalg import elimination_solve, regular_inverse
+        from .picard import kinetic_structure
+
+        def momentum(v):
+            return jax.grad(self.__call__, argnums=2)(t, q, v, args)
+
+        structure = kinetic_structure(self, t, q, args)
+        if structure is not None and structure.mass_constant and structure.mass is not None:
+            minv = regular_inverse(structure.mass, q.dtype)
+            if minv is not None:
+                w = p - momentum(jnp.zeros_like(q))
+                return w if minv is True else jnp.sum(jnp.asarray(minv, q.dtype) * w, axis=1)
+
+        def newton(_, v):
+            mass = jax.jacfwd(momentum)(v)
+            step = elimination_solve if in_step else solve
+            return v - step(mass, momentum(v) - p)
+
+        v = jnp.zeros_like(q)
+        if not in_step:
+            return jax.lax.fori_loop(0, self.legendre_iterations, newton, v)
+        for i in range(self.legendre_iterations):
+            v = newton(i, v)
+        return v
 
     def energy(self, t, q, p, args):
         """`H(t, q, p) = p·v − L(t, q, v)` with `v` from the inverse Legendre map."""
