@@ -17,7 +17,7 @@ energy evaluations a step (each an evaluation of `L` and its velocity gradient; 
 matrix is formed only where it is not known when the step is traced).
 
 Whether the check applies is decided when the step is traced, from the program of the term
-(dead-code elimination, as `diffrax_vi.picard.kinetic_structure`): a `LagrangianTerm` whose
+(dead-code elimination, as `_kinetic_structure.kinetic_structure`): a `LagrangianTerm` whose
 Lagrangian and holonomic constraints do not read the time, without a non-conservative force
 (whose work would have to be accounted for). Elsewhere the step is not checked. A start whose
 energy cannot be evaluated (a singular kinetic matrix) passes.
@@ -30,8 +30,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from ._kinetic_structure import kinetic_structure, used_inputs
 from .linalg import regular_inverse
-from .picard import kinetic_structure, used_inputs
 from .results import JUMP_TOLERANCE
 from .terms import LagrangianTerm
 
@@ -72,7 +72,9 @@ def applies(term, t, q: Array, args) -> bool:
 
 def energy_and_scale(term: LagrangianTerm, t, q: Array, p: Array, args) -> tuple[Array, Array]:
     """`(H, S)`: the energy `p·v − L(q, v)` of `(q, p)` and its scale `|p·v| + |L(q, v)|`."""
-    v = term.legendre_inverse(t, q, p, args, in_step=True)
+    structure = kinetic_structure(term, t, q, args)
+    mass = None if structure is None or not structure.mass_constant else structure.mass
+    v = term.legendre_inverse(t, q, p, args, mass=mass, in_step=True)
     pv = jnp.sum(p * v)
     lagrangian = term(t, q, v, args)
     return pv - lagrangian, jnp.abs(pv) + jnp.abs(lagrangian)

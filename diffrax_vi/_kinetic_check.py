@@ -104,7 +104,7 @@ def _reads(fn, inputs) -> list[tuple[bool, bool, bool]]:
 
 def _known_mass(ctx):
     """The kinetic matrix as a NumPy array where it is constant and known when traced."""
-    from .picard import kinetic_structure
+    from ._kinetic_structure import kinetic_structure
 
     try:
         structure = kinetic_structure(ctx.term, ctx.t, ctx.q0, ctx.args)
@@ -117,7 +117,7 @@ def _generically_regular(blocks, ctx, dynamic, static, tol: float) -> bool:
     """Whether a kinetic matrix that varies with the state is regular at a random state (its
     rank where it is not at a special state: the double pendulum's is regular everywhere).
     Evaluated now, with the term's own parameters where they are known (else `False`)."""
-    from .picard import evaluated_now
+    from ._kinetic_structure import evaluated_now
 
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(dynamic)):
         return False

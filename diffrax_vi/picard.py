@@ -28,20 +28,19 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
+from ._kinetic_structure import KineticStructure, kinetic_structure
 from .lagrange import continuation_coefficients
 from .linalg import constant_outer, constant_product, elimination_solve, well_conditioned
 
 __all__ = [
-    "KineticStructure", "PicardPlan", "PicardSolve", "extrapolation", "kinetic_structure",
-    "evaluated_now", "picard_engine", "picard_plan", "picard_solve", "newton_solve",
-    "start_at_rest", "used_inputs",
+    "PicardPlan", "PicardSolve", "extrapolation", "picard_engine", "picard_plan",
+    "picard_solve", "newton_solve", "start_at_rest",
 ]
 
 # Updates made first without any test (their changes are not even measured), then updates
@@ -59,124 +58,6 @@ PREDICT_MARGIN = 1024
 NOISE = 64
 # Consecutive growing updates, above the noise, that end the iteration as not contracting.
 MAX_GROWTH = 2
-
-
-class KineticStructure(NamedTuple):
-    """What a Lagrangian's derivatives depend on, read off its program (not sampled).
-
-    - `mass_constant`: `∂²L/∂v²` depends on none of `t`, `q`, `v`;
-    - `offset_moves`: `∂L/∂v` at `v = 0` depends on `t` or `q` (a magnetic term);
-    - `force_reads_velocity`: `∂L/∂q` depends on `v`;
-    - `mass`: `∂²L/∂v²` as a NumPy array where it depends on nothing traced at all (neither
-      the state nor `args` nor the term's parameters), else `None`.
-    """
-
-    mass_constant: bool
-    offset_moves: bool
-    force_reads_velocity: bool
-    mass: np.ndarray | None
-
-
-def used_inputs(fn, *inputs) -> list[bool]:
-    """Which leaves of `inputs` the outputs of `fn(*inputs)` depend on: dead-code elimination
-    of its program, so the answer is structural (a dependence that cancels numerically still
-    counts)."""
-    from jax._src.interpreters import partial_eval as pe
-
-    closed = jax.make_jaxpr(fn)(*inputs)
-    _, used = pe.dce_jaxpr(closed.jaxpr, [True] * len(closed.jaxpr.outvars))
-    return list(used)
-
-
-def kinetic_structure(term, t, q, args) -> KineticStructure | None:
-    """The `KineticStructure` of the Lagrangian of `term` (a `LagrangianTerm`) at the shapes
-    and dtypes of `t`, `q` and `args`; `None` where the term is no Lagrangian or its program
-    cannot be read."""
-    from .terms import LagrangianTerm
-
-    if not isinstance(term, LagrangianTerm):
-        return None
-    dynamic, static = eqx.partition((term, args), eqx.is_array)
-    # The answer depends on the program and the shapes only (a known mass is one that reads
-    # no input at all): kept per term settings and shapes, as a solve asks for it in `init`
-    # and in every trace of its step.
-    leaves, tree = jax.tree_util.tree_flatten((jnp.asarray(t), q, dynamic))
-    try:
-        key = (static, tree, tuple((np.shape(a), jnp.result_type(a)) for a in leaves))
-        hash(key)
-    except TypeError:  # unhashable settings: read afresh
-        return _kinetic_structure(t, q, dynamic, static)
-    if key not in _STRUCTURES:
-        if len(_STRUCTURES) >= 64:
-            _STRUCTURES.pop(next(iter(_STRUCTURES)))
-        _STRUCTURES[key] = _kinetic_structure(t, q, dynamic, static)
-    return _STRUCTURES[key]
-
-
-_STRUCTURES: dict = {}
-
-
-def _kinetic_structure(t, q, dynamic, static) -> KineticStructure | None:
-    v = jnp.zeros_like(q)
-
-    def lagrangian(t, q, v, dynamic):
-        term_, args_ = eqx.combine(dynamic, static)
-        return term_(t, q, v, args_)
-
-    def mass(t, q, v, dynamic):
-        return jax.hessian(lagrangian, argnums=2)(t, q, v, dynamic)
-
-    def offset(t, q, v, dynamic):
-        return jax.grad(lagrangian, argnums=2)(t, q, jnp.zeros_like(v), dynamic)
-
-    def force(t, q, v, dynamic):
-        return jax.grad(lagrangian, argnums=1)(t, q, v, dynamic)
-
-    try:
-        inputs = (jnp.asarray(t), q, v, dynamic)
-        used_mass = used_inputs(mass, *inputs)
-        used_offset = used_inputs(offset, *inputs)
-        used_force = used_inputs(force, *inputs)
-    except Exception:  # a program that cannot be traced apart: no fast path, never wrong
-        return None
-    mass_constant = not any(used_mass[:3])
-    known = None
-    if mass_constant and not any(used_mass):
-        zeros = jax.tree_util.tree_map(
-            lambda a: np.zeros(np.shape(a), a.dtype), (jnp.asarray(t), q, v, dynamic)
-        )
-        known = np.asarray(evaluated_now(mass, static, zeros), np.float64)
-    return KineticStructure(
-        mass_constant=mass_constant,
-        offset_moves=bool(used_offset[0] or used_offset[1]),
-        force_reads_velocity=bool(used_force[2]),
-        mass=known,
-    )
-
-
-def evaluated_now(fn, static, inputs):
-    """`fn(*inputs)` for NumPy `inputs`, computed now even while a solve is being traced: as
-    one program compiled ahead of time (a compiled executable runs on its arguments; a call
-    of `jax.jit` would be staged into the trace, and eager evaluation would compile every
-    operation on its own). The executable is kept per program (`fn`'s code), term settings
-    `static` (where hashable) and input shapes."""
-    shapes = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), inputs)
-    leaves, tree = jax.tree_util.tree_flatten(shapes)
-    try:
-        key = (fn.__code__, static, tree, tuple(leaves))
-        compiled = _COMPILED.get(key)
-    except TypeError:  # a term with unhashable settings: compiled for this call
-        key, compiled = None, None
-    if compiled is None:
-        compiled = jax.jit(fn).lower(*shapes).compile()
-        if key is not None:
-            if len(_COMPILED) >= 64:
-                _COMPILED.pop(next(iter(_COMPILED)))
-            _COMPILED[key] = compiled
-    return compiled(*inputs)
-
-
-_COMPILED: dict = {}
 
 
 def picard_engine(allowed: bool, formulation, ctx):

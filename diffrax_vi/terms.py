@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import Array, ArrayLike, PyTree
 
-from .linalg import solve
+from .linalg import elimination_solve, regular_inverse, solve
 from .validation import check_state, check_times
 
 __all__ = ["AbstractMechanicalTerm", "LagrangianTerm", "IODETerm", "unwrap_term"]
@@ -317,32 +317,27 @@ class LagrangianTerm(AbstractMechanicalTerm):
             "integrate degenerate systems with NetworkVI (e.g. as an IODETerm).",
         )
 
-    def legendre_inverse(self, t, q, p, args, *, in_step: bool = False) -> Array:
+    def legendre_inverse(self, t, q, p, args, *, mass=None, in_step: bool = False) -> Array:
         """The velocity at which `∂L/∂v = p`, unchecked (NaN where the kinetic matrix is
-        singular): the closed form if given; one Newton update from rest where the kinetic
-        matrix is constant, known when traced and regular (the momentum is affine in `v`:
-        exact); else `legendre_iterations` Newton updates from `v = 0`. `in_step` writes
-        the updates out, solved by elimination, for use inside a step (a loop or a library
-        call there costs more than the arithmetic)."""
+        singular): the closed form if given; where the caller knows the kinetic matrix to be
+        the constant `mass` (NumPy) and it is regular, one Newton update from rest (the
+        momentum is affine in `v`: exact); else `legendre_iterations` Newton updates from
+        `v = 0`. `in_step` writes the updates out, solved by elimination, for use inside a
+        step (a loop or a library call there costs more than the arithmetic)."""
         if self.velocity_map is not None:
             return self.velocity_map(t, q, p, args).astype(q.dtype)
-        from .linalg import elimination_solve, regular_inverse
-        from .picard import kinetic_structure
 
         def momentum(v):
             return jax.grad(self.__call__, argnums=2)(t, q, v, args)
 
-        structure = kinetic_structure(self, t, q, args)
-        if structure is not None and structure.mass_constant and structure.mass is not None:
-            minv = regular_inverse(structure.mass, q.dtype)
-            if minv is not None:
-                w = p - momentum(jnp.zeros_like(q))
-                return w if minv is True else jnp.sum(jnp.asarray(minv, q.dtype) * w, axis=1)
+        minv = None if mass is None else regular_inverse(mass, q.dtype)
+        if minv is not None:
+            w = p - momentum(jnp.zeros_like(q))
+            return w if minv is True else jnp.sum(jnp.asarray(minv, q.dtype) * w, axis=1)
 
         def newton(_, v):
-            mass = jax.jacfwd(momentum)(v)
-            step = elimination_solve if in_step else solve
-            return v - step(mass, momentum(v) - p)
+            kinetic = jax.jacfwd(momentum)(v)
+            return v - (elimination_solve if in_step else solve)(kinetic, momentum(v) - p)
 
         v = jnp.zeros_like(q)
         if not in_step:

@@ -9,7 +9,8 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.picard import kinetic_structure, picard_solve, start_at_rest
+from diffrax_vi._kinetic_structure import kinetic_structure
+from diffrax_vi.picard import picard_solve, start_at_rest
 from diffrax_vi.root_finders.fixed_point import FixedPointIteration
 
 jax.config.update("jax_enable_x64", True)

@@ -11,7 +11,6 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.picard import PLAIN, UNROLLED
 from tests.helpers import all_parameter_network as all_parameter
 from tests.helpers import max_relative_error, solve_problem
 from tests.helpers import shallow_network as shallow
@@ -65,9 +64,10 @@ def test_iteration_statistics(ho_tanh):
     counts = np.repeat(np.arange(state.histogram.shape[0]), np.asarray(state.histogram))
     assert int(state.iterations) == counts.sum()
     assert int(state.max_iterations) == counts.max()
-    # the default on this constant-mass Lagrangian is the Jacobian-free iteration: its
-    # untested updates, then at most one tested update on a typical step
-    assert np.median(counts) <= PLAIN + UNROLLED + 1
+    # the default on this constant-mass Lagrangian is the Jacobian-free iteration: two
+    # updates measure its rate of contraction, and from a start continued from the last
+    # step the third is predicted to leave a change below round-off on a typical step
+    assert np.median(counts) <= 3
 
 
 def test_harmonic_oscillator_relu3_width4():

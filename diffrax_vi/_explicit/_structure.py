@@ -4,8 +4,8 @@ A kick-drift splitting is explicit when the Hamiltonian separates as `T(p) + U(t
 drift `q̇ = ∂T/∂p` then moves only `q` and the kick `ṗ = −∂U/∂q` only `p`. For a Lagrangian this
 is `L = ½ vᵀ M v + aᵀ v − U(t, q)` with a constant kinetic matrix `M` and a constant offset `a`
 (so `p = M v + a`, `v = M⁻¹ (p − a)`), and a force `∂L/∂q` that does not read the velocity.
-The program of the Lagrangian decides it (`diffrax_vi.picard.kinetic_structure`), not a sample
-of its values. A non-conservative force may read the velocity: the kicks then solve for it.
+The program of the Lagrangian decides it (`_kinetic_structure.kinetic_structure`), not a
+sample of its values. A non-conservative force may read the velocity: the kicks then solve for it.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..picard import kinetic_structure
+from .._kinetic_structure import kinetic_structure
 from ..precision import as_dtype, lapack_dtype
 
 __all__ = ["Kinetics", "kinetics", "force_reads_velocity"]
