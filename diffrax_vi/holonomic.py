@@ -33,11 +33,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ._constrained_engine import constant_kinetic, split_solve
 from .ansatz.polynomial import LagrangeBasis, lobatto_points
 from .formulation import StepContext, node_momenta_and_forces, stage_values
 from .lagrange import lagrange_weights
 from .lazy import unless_all_skip
-from .linalg import dense_tangent_solve, solve
+from .linalg import dense_tangent_solve, solve, unpivoted_inverse
 from .precision import lapack_dtype
 from .results import STEP_FAILURES
 
@@ -124,7 +125,6 @@ def _equations(term, degree, t, h, q0, p0, args):
     the map from them to `(values, ∂S/∂Q without the constraint, forces)`."""
     tau, b, d = _rule(degree, q0.dtype)
     times = t + tau * h
-    jacobian = jax.vmap(term.constraint_jacobian, in_axes=(0, 0, None))
 
     def momenta(z):
         increments, impulses = z
@@ -141,13 +141,22 @@ def _equations(term, degree, t, h, q0, p0, args):
 
     def residual(z):
         values, sums, _ = momenta(z)
-        g = jacobian(times[:-1], values[:-1], args)
-        reaction = jnp.einsum("imd,im->id", g, z[1])
+        reaction = reactions(term, times[:-1], values[:-1], z[1], args)
         balance = (sums[:-1] - reaction).at[0].add(p0)
         on = jax.vmap(term.constraint_values, in_axes=(0, 0, None))(times[1:], values[1:], args)
         return balance, on
 
     return residual, momenta
+
+
+def reactions(term, times, values, impulses, args):
+    """`G(t_i, Q_i)ᵀ μ_i` at each point: the constraint's reactions, as the transposed
+    derivative of `g` (one pass backwards, not the `M × D` Jacobian)."""
+
+    def one(t, q, mu):
+        return jax.vjp(lambda x: term.constraint_values(t, x, args), q)[1](mu)[0]
+
+    return jax.vmap(one)(times, values, impulses)
 
 
 def _flat(z):
@@ -227,10 +236,26 @@ def _hidden(term, t1, q1, p_end, args, g):
     return mu
 
 
-def drift(term, t, q, p, args) -> Array:
+def _hidden_linear(kinetic, term, t1, q1, p_end, args, g):
+    """`_hidden` for a constant kinetic matrix: the velocity is affine in `p`, so the impulse
+    solves `G M⁻¹ Gᵀ μ = G v(p_end) + ∂g/∂t` (the small symmetric matrix of the constraints,
+    inverted once), refined by one update against the rounding of the first."""
+    rate = term.constraint_rate(t1, q1, args)
+    work = lapack_dtype(q1.dtype)
+    inverse = unpivoted_inverse((g @ kinetic.times_minv(g).T).astype(work)).astype(q1.dtype)
+
+    def hidden(mu):
+        return g @ kinetic.velocity(t1, q1, p_end - g.T @ mu, args) + rate
+
+    mu = inverse @ hidden(jnp.zeros(g.shape[0], q1.dtype))
+    return mu + inverse @ hidden(mu)
+
+
+def drift(term, t, q, p, args, velocity=None) -> Array:
     """`(max |g(t, q)|, max |G v + ∂g/∂t|)`: how far a state is off the constraint and off
-    its hidden (velocity-level) constraint."""
-    v = term.velocity(t, q, p, args)
+    its hidden (velocity-level) constraint (`velocity`: the inverse Legendre map, default the
+    term's own)."""
+    v = (term.velocity if velocity is None else velocity)(t, q, p, args)
     g = term.constraint_jacobian(t, q, args)
     position = jnp.max(jnp.abs(term.constraint_values(t, q, args)))
     velocity = jnp.max(jnp.abs(g @ v + term.constraint_rate(t, q, args)))
@@ -271,13 +296,14 @@ def no_previous_step(term, degree: int, t, q0, args) -> PreviousStep:
                         jnp.ones((), q0.dtype), jnp.array(False))
 
 
-def _start(term, degree, t, h, q0, p0, args, previous: PreviousStep):
+def _start(term, degree, t, h, q0, p0, args, previous: PreviousStep, velocity=None):
     """The solve's start: the last step's curve and multipliers continued into this step
     (values of the same polynomials at the new points), or, without a last step, the
     straight line of the start's velocity with zero impulses; values as increments."""
     tau, weights, _ = _rule(degree, q0.dtype)
     points = lobatto_points(degree)
-    line = (tau[1:, None] * h) * term.velocity(t, q0, p0, args)
+    line = (tau[1:, None] * h) * (term.velocity if velocity is None else velocity)(t, q0, p0,
+                                                                                   args)
     zero = jnp.zeros(previous.impulses[:-1].shape, q0.dtype)
     continued = jax.vmap(lambda x: lagrange_weights(points, x))(1 + (h / previous.h) * tau)
     values = continued[1:] @ previous.values - q0
@@ -302,30 +328,60 @@ def constrained_step(term, degree: int, t, h, q0, p0, args, max_steps: int,
         lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x,
         (t, h, q0, p0, args, previous),
     )
-    residual_frozen, _ = _equations(term, degree, *frozen[:5])
-    start = _start(term, degree, *frozen)
-    found, iterations, converged, finite, size = _newton(
-        residual_frozen, start, jax.lax.stop_gradient(scale), max_steps
-    )
+    fixed = jax.tree_util.tree_map(  # the term's own parameters (a damping) too
+        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, term)
+    residual_frozen, _ = _equations(fixed, degree, *frozen[:5])
+    # For a constant kinetic matrix (decided when traced) the split iteration, Jacobian-free
+    # in the node values (`_constrained_engine`), with the general solve from the same start
+    # only where it does not contract; else the general solve.
+    t_, h_, q0_, _, args_, _ = frozen
+    kinetic = constant_kinetic(fixed, t_, q0_, args_)
+    velocity = fixed.velocity if kinetic is None else kinetic.velocity
+    start = _start(fixed, degree, *frozen, velocity=velocity)
+    if kinetic is None:
+        found, iterations, converged, finite, size = _newton(
+            residual_frozen, start, jax.lax.stop_gradient(scale), max_steps
+        )
+    else:
+        split = split_solve(kinetic, degree, t_, h_, q0_, args_, fixed, residual_frozen, start,
+                            jax.lax.stop_gradient(scale))
+
+        def general():
+            z, k, ok, fine, last = _newton(residual_frozen, start,
+                                           jax.lax.stop_gradient(scale), max_steps)
+            return z, k + split[1], ok, fine, last
+
+        found, iterations, converged, finite, size = unless_all_skip(~split[2], general, split)
 
     residual, momenta = _equations(term, degree, t, h, q0, p0, args)
     z = jax.lax.custom_root(residual, found, lambda _, __: found, dense_tangent_solve)
     values, _, forces = momenta(z)
     tau, b, _ = _rule(degree, dtype)
-    g = jax.vmap(term.constraint_jacobian, in_axes=(0, 0, None))(t + tau * h, values, args)
     # The momentum's change as the impulses of the step (the forces by the rule, the
     # constraint's reactions): at the root it is `∂S/∂Q_{s+1} − p_n`, rounded at its own size.
-    dp_free = h * (b @ forces) - jnp.einsum("imd,im->d", g[:-1], z[1])
+    dp_free = h * (b @ forces) - jnp.sum(
+        reactions(term, t + tau[:-1] * h, values[:-1], z[1], args), axis=0)
     t1 = t + h
     q1 = values[-1]
-    mu_end = _hidden(term, t1, q1, p0 + dp_free, args, g[-1])
-    dp = dp_free - g[-1].T @ mu_end
+    g_end = term.constraint_jacobian(t1, q1, args)
+    if kinetic is None:
+        mu_end = _hidden(term, t1, q1, p0 + dp_free, args, g_end)
+    else:
+        # the kinetic matrix again, of the term as differentiated (a mass set by `args`)
+        mu_end = _hidden_linear(constant_kinetic(term, t, q0, args), term, t1, q1,
+                                p0 + dp_free, args, g_end)
+    dp = dp_free - g_end.T @ mu_end
     p1 = p0 + dp
     impulses = jnp.concatenate([z[1], mu_end[None]])
 
-    start_drift = drift(term, t, q0, p0, args)
-    end_drift = drift(term, t1, q1, p1, args)
-    v_scale = 1 + jnp.max(jnp.abs(term.velocity(t, q0, p0, args)))
+    # The start was checked as the last step's end: checked here only on the first step and
+    # after a jump (where there is no last step).
+    def start_drift_now():
+        return drift(fixed, t_, q0_, frozen[3], args_, velocity)
+
+    start_drift = unless_all_skip(~frozen[5].valid, start_drift_now, jnp.zeros(2, dtype))
+    end_drift = drift(fixed, *jax.lax.stop_gradient((t1, q1, p1)), args_, velocity)
+    v_scale = 1 + jnp.max(jnp.abs(velocity(t_, q0_, frozen[3], args_)))
     q_scale = 1 + jnp.max(jnp.abs(q0))
     tolerance = eps ** 0.5 * jnp.stack([q_scale, v_scale])
     unmet = jnp.any(start_drift > tolerance) | jnp.any(end_drift > tolerance)
