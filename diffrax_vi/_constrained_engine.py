@@ -166,8 +166,10 @@ def split_solve(kinetic: ConstantKinetic, degree: int, t, h, q0, args, term, res
         # impulses' rounding is that of `S⁻¹` times the residual's, far above a unit of theirs
         fastest = jnp.minimum(last[_FAST], worst)
         stalled = change >= 0.5 * last[_CHANGE]
+        # (the curve's own change at round-off: a slow mode would show there too)
         at_noise = stalled & ((change <= NOISE * eps)
-                              | ((last[_FAST] < 0.25) & (change <= eps ** 0.5)))
+                              | ((size_x <= NOISE * eps) & (last[_FAST] < 0.25)
+                                 & (change <= eps ** 0.5)))
         finite = jnp.isfinite(change)
         converged = ((change <= tiny) | predicted | at_noise) & finite
         growing = (change > NOISE * eps) & (change >= last[_CHANGE])
