@@ -414,8 +414,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         drift = jnp.maximum(state.holonomic_drift, solved.drift.astype(dtype))
         ok = result == diffrax.RESULTS.successful
         last = PreviousStep(solved.values, solved.impulses, ctx.h, ok)
-        new_state = eqx.tree_at(lambda s: (s.holonomic_drift, s.holonomic_previous), new_state,
-                                (drift, jax.lax.stop_gradient(last)))
+        # The seed policy's record is never read by the constrained step: it stays as it
+        # was, so that its bookkeeping is not compiled (issue 65).
+        new_state = eqx.tree_at(
+            lambda s: (s.holonomic_drift, s.holonomic_previous, s.seed), new_state,
+            (drift, jax.lax.stop_gradient(last), state.seed))
         return (q1, p1), y_error, dense_info, new_state, result
 
     def _end_state(self, ctx, state, dq, dp, on_constraint: bool):
