@@ -15,6 +15,16 @@ Three tools integrate it:
    expressions (the 5 x 5 mass-matrix solve as symbolic Gaussian elimination, which heyoka's
    decomposition shares by common-subexpression elimination).
 
+Two more measurements follow in the same process (issue 65):
+
+- the spherical pendulum (`problems.spherical_pendulum()`, T = 10): `CGVI(k)` in Cartesian
+  coordinates with its constraint against `Dopri8` in the spherical angles `(θ, φ)`, the
+  angle states mapped to `(q, p)`; the ratio at equal error 1e-9 and 1e-12;
+- one step: `CGVI(4)` at one `dt` on the 5- and 20-link chains (constrained) and on the
+  5-link chain's 10 coordinates with stiff springs for rods and no constraint (the
+  unconstrained engine, `diffrax_vi.picard`): each solve's median over its steps, the updates
+  per step, and the ratios constrained / engine and 20 links / 5 links.
+
 The error is the max-norm of `(q, p)` at T against `problem.reference([T])` (extended-precision
 extrapolation in the angles, mapped to `(q, p)`); the angle solvers' final states are mapped by
 `problems.chain_angles_to_state` in float64. Timings follow `benchmarks.peers_side_by_side`:
@@ -27,14 +37,16 @@ its time as a multiple of heyoka's.
 
     .venv/bin/python -m benchmarks.constrained_chain [--quick] [--repeats 5] [--json FILE]
 
-`--quick` (one CGVI degree and two steps, one tolerance each, two repeats) is a smoke run of
-about a minute, mostly compilation; it writes no JSON unless `--json` is given.
+`--quick` (one CGVI degree and two steps, one tolerance each, a short per-step run, two
+repeats) is a smoke run of about a minute, mostly compilation; it writes no JSON unless
+`--json` is given.
 Without heyoka (the `peers` extra) its part is skipped and the ratios are not given.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import math
@@ -50,6 +62,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import diffrax  # noqa: E402
+import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -63,12 +76,20 @@ DEFAULT_JSON = os.path.join("benchmarks", "results", "constrained_chain.json")
 TARGETS = (1e-6, 1e-9, 1e-12)
 
 FULL = dict(
-    cgvi={2: (0.1, 0.05, 0.025, 0.0125), 4: (0.2, 0.1, 0.05, 0.025), 6: (0.4, 0.2, 0.1, 0.05)},
+    cgvi={2: (0.025, 0.0125), 4: (0.2, 0.1, 0.05, 0.025), 5: (0.2, 0.1, 0.05),
+          6: (0.4, 0.2, 0.1, 0.05)},
     dopri8=(1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
     heyoka=(1e-9, 1e-12, 1e-15),
+    sphere_cgvi={4: (0.2, 0.1, 0.05), 5: (0.2, 0.1, 0.05), 6: (0.4, 0.2, 0.1)},
+    sphere_dopri8=(1e-8, 1e-10, 1e-11, 1e-12, 1e-13),
+    per_step=dict(degree=4, dt=0.025, steps=200, links=(5, 20)),
     repeats=5,
 )
-QUICK = dict(cgvi={4: (0.2, 0.1)}, dopri8=(1e-10,), heyoka=(1e-12,), repeats=2)
+QUICK = dict(cgvi={4: (0.2, 0.1)}, dopri8=(1e-10,), heyoka=(1e-12,),
+             sphere_cgvi={4: (0.1,)}, sphere_dopri8=(1e-10,),
+             per_step=dict(degree=4, dt=0.05, steps=40, links=(5, 20)), repeats=2)
+# The equal-error ratios the issue (65) asks of the spherical pendulum.
+SPHERE_TARGETS = (1e-9, 1e-12)
 
 
 # -- the chain in joint angles ----------------------------------------------------------------
@@ -180,7 +201,7 @@ def make_row(tool, setting, steps, err, timing, drift, status="ok", **extra) -> 
                 status=status, **extra)
 
 
-def cgvi_rows(problem, reference, grid, repeats, out) -> list[dict]:
+def cgvi_rows(problem, reference, grid, repeats, out, tool="CGVI") -> list[dict]:
     term, t0, t1 = problem.term, problem.t0, problem.t1
     rows = []
     for degree, steps_sizes in grid.items():
@@ -206,7 +227,7 @@ def cgvi_rows(problem, reference, grid, repeats, out) -> list[dict]:
             err = state_error(np.asarray(q)[-1], np.asarray(p)[-1], reference)
             drift = np.asarray(drift, np.float64).reshape(-1, 2)[-1]
             status = "ok" if bool(ok) and math.isfinite(err) else "failed"
-            rows.append(make_row(f"CGVI({degree})", setting, taken, err,
+            rows.append(make_row(f"{tool}({degree})", setting, taken, err,
                                  (compile_s, best, median), tuple(map(float, drift)), status,
                                  coordinates="Cartesian + multipliers", order=2 * degree,
                                  drift_note="largest over the run (solver state)"))
@@ -338,6 +359,108 @@ def source_revision() -> str:
     return head + ("+changes" if dirty else "")
 
 
+# -- the spherical pendulum: Cartesian with its constraint, against Dopri8 in its angles ----
+def sphere_angle_field(t, y, args):
+    """`(θ, φ, θ̇, φ̇)'` of `problems.spherical_pendulum()` (g/ℓ = 9.81), in JAX."""
+    theta, _, dtheta, dphi = y[0], y[1], y[2], y[3]
+    s, c = jnp.sin(theta), jnp.cos(theta)
+    return jnp.stack([dtheta, dphi, s * c * dphi**2 - 9.81 * s, -2 * c / s * dtheta * dphi])
+
+
+def sphere_rows(grid_cgvi, rtols, repeats, out) -> list[dict]:
+    problem = problems.spherical_pendulum(dtype=jnp.float64)
+    q_ref, p_ref = problem.reference(np.array([problem.t1]))
+    reference = (q_ref[0], p_ref[0])
+    rows = cgvi_rows(problem, reference, grid_cgvi, repeats, out, tool="sphere CGVI")
+    term = diffrax.ODETerm(sphere_angle_field)
+    y0 = jnp.asarray(problem.reference_flow.y0, jnp.float64)
+    to_cartesian = problem.reference_flow.to_state
+    for rtol in rtols:
+        @jax.jit
+        def solve(y0, rtol=rtol):
+            sol = diffrax.diffeqsolve(
+                term, diffrax.Dopri8(), problem.t0, problem.t1, None, y0,
+                stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
+                saveat=diffrax.SaveAt(t1=True), max_steps=2**20, throw=False)
+            return sol.ys, sol.result == diffrax.RESULTS.successful, sol.stats["num_steps"]
+
+        (y, ok, taken), compile_s, best, median = timed_jax(solve, y0, repeats=repeats)
+        q, p = to_cartesian(np.asarray(y, np.float64)[-1:])
+        err = state_error(q[0], p[0], reference)
+        drift = (abs(float(q[0] @ q[0]) - 1.0) / 2, abs(float(q[0] @ p[0])))
+        rows.append(make_row("sphere Dopri8 (angles)", f"rtol = atol = {rtol:g}", taken, err,
+                             (compile_s, best, median), drift,
+                             "ok" if bool(ok) and math.isfinite(err) else "failed",
+                             coordinates="spherical angles"))
+        print_row(out, rows[-1])
+    out()
+    out("## Spherical pendulum at equal error (median; fastest CGVI / fastest Dopri8)")
+    out()
+    for target in SPHERE_TARGETS:
+        best = {}
+        for tool in ("sphere CGVI", "sphere Dopri8"):
+            ok = [r for r in rows if r["tool"].startswith(tool) and r["status"] == "ok"
+                  and r["error"] <= target]
+            best[tool] = min(ok, key=lambda r: r["wall_median_s"]) if ok else None
+        c, d = best["sphere CGVI"], best["sphere Dopri8"]
+        if c and d:
+            out(f"- {target:.0e}: {c['tool']} {c['setting']} {fmt_s(c['wall_median_s'])} "
+                f"({c['error']:.0e}) / Dopri8 {d['setting']} {fmt_s(d['wall_median_s'])} "
+                f"({d['error']:.0e}) = {c['wall_median_s'] / d['wall_median_s']:.2f}x")
+        else:
+            out(f"- {target:.0e}: not reached by " + ", ".join(k for k, v in best.items() if not v))
+    return rows
+
+
+# -- one step: constrained against the unconstrained engine, 5 links against 20 --------------
+class SpringChain(eqx.Module):
+    """The chain's points and gravity with stiff springs (k = 100) for its rods and no
+    constraint: the same 2N coordinates, stepped by the unconstrained engine."""
+
+    def __call__(self, t, q, v, args):
+        r = q.reshape(-1, 2)
+        d = r - jnp.concatenate([jnp.zeros_like(r[:1]), r[:-1]])
+        stretch = jnp.sqrt(jnp.sum(d * d, axis=1)) - 1.0
+        return 0.5 * v @ v - 9.81 * jnp.sum(r[:, 1]) - 50.0 * jnp.sum(stretch**2)
+
+
+def per_step_rows(config, repeats, out) -> list[dict]:
+    """The time of one step (the whole solve's median over its steps), `CGVI(degree)` at one
+    `dt`: the damped chain of each number of links, and the 5-link chain's points on springs
+    without constraints (the unconstrained engine, `diffrax_vi.picard`)."""
+    degree, dt, steps = config["degree"], config["dt"], config["steps"]
+    cases = [(f"chain {n} links (constrained)", problems.rigid_chain(n_links=n))
+             for n in config["links"]]
+    spring = problems.rigid_chain(n_links=config["links"][0])
+    cases.append((f"{2 * config['links'][0]} coordinates on springs (engine)",
+                  dataclasses.replace(spring, term=dvi.LagrangianTerm(SpringChain()))))
+    rows = []
+    for name, problem in cases:
+        @jax.jit
+        def solve(y0, term=problem.term):
+            sol = diffrax.diffeqsolve(term, dvi.CGVI(degree), 0.0, dt * steps, dt, y0,
+                                      saveat=diffrax.SaveAt(t1=True, solver_state=True),
+                                      max_steps=steps + 2,
+                                      throw=False)
+            return (sol.result == diffrax.RESULTS.successful, sol.stats["num_steps"],
+                    sol.solver_state.iterations)
+
+        (ok, taken, iterations), compile_s, best, median = timed_jax(solve, problem.y0,
+                                                                     repeats=repeats)
+        row = dict(case=name, degree=degree, dt=dt, steps=int(taken), ok=bool(ok),
+                   updates_per_step=float(iterations) / max(int(taken), 1),
+                   step_median_s=median / steps, step_best_s=best / steps, compile_s=compile_s)
+        rows.append(row)
+        out(f"| {name} | {int(taken)} | {row['updates_per_step']:.1f} | "
+            f"{fmt_s(row['step_median_s'])} | {fmt_s(row['step_best_s'])} | "
+            f"{'ok' if ok else 'failed'} |")
+    c5, c20, engine = (r["step_median_s"] for r in rows)
+    out()
+    out(f"- constrained 5-link step / unconstrained engine step: {c5 / engine:.2f}x")
+    out(f"- 20-link step / 5-link step: {c20 / c5:.2f}x")
+    return rows
+
+
 # -- output -----------------------------------------------------------------------------------
 def print_row(out, row) -> None:
     out(f"| {row['tool']} | {row['setting']} | {row['steps']} | {row['error']:.1e} | "
@@ -437,6 +560,19 @@ def main(argv=None) -> None:
     else:
         out(f"(heyoka skipped: {peers.MISSING_MESSAGE})")
     summary = equal_error(rows, out)
+    out()
+    out("## Spherical pendulum: CGVI in Cartesian coordinates, Dopri8 in spherical angles")
+    out()
+    out("| tool | setting | steps | error | median | best | compile | drift | status |")
+    out("|---|---|---|---|---|---|---|---|---|")
+    sphere = sphere_rows(config["sphere_cgvi"], config["sphere_dopri8"], repeats, out)
+    out()
+    out(f"## One step (CGVI({config['per_step']['degree']}), dt = {config['per_step']['dt']:g}, "
+        f"{config['per_step']['steps']} steps; median over the solve)")
+    out()
+    out("| case | steps | updates / step | step (median) | step (best) | status |")
+    out("|---|---|---|---|---|---|")
+    per_step = per_step_rows(config["per_step"], repeats, out)
     if json_path:
         record = dict(command=command, date=str(datetime.date.today()),
                       machine=f"{platform.machine()}, {os.cpu_count()} CPUs",
@@ -445,7 +581,8 @@ def main(argv=None) -> None:
                       diffrax=diffrax.__version__, heyoka=hy_version, dtype="float64",
                       problem=dict(name=problem.name, t1=problem.t1, **problem.params),
                       reference=problem.reference_method, reference_check_gap=gap,
-                      repeats=repeats, targets=list(TARGETS), rows=rows, equal_error=summary)
+                      repeats=repeats, targets=list(TARGETS), rows=rows, equal_error=summary,
+                      spherical_pendulum=sphere, per_step=per_step)
         os.makedirs(os.path.dirname(json_path) or ".", exist_ok=True)
         with open(json_path, "w", encoding="utf-8") as f:
             json.dump(record, f, indent=1)
