@@ -36,8 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ._kinetic_structure import kinetic_structure
 from .linalg import constant_product, unpivoted_inverse, well_conditioned
-from .picard import kinetic_structure
 from .precision import lapack_dtype
 
 __all__ = ["ConstantKinetic", "constant_kinetic", "split_solve"]
