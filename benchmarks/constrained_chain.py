@@ -22,7 +22,7 @@ Two more measurements follow in the same process (issue 65):
   angle states mapped to `(q, p)`; the ratio at equal error 1e-9 and 1e-12;
 - one step: `CGVI(4)` at one `dt` on the 5- and 20-link chains (constrained) and on the
   5-link chain's 10 coordinates with stiff springs for rods and no constraint (the
-  unconstrained engine, `diffrax_vi.picard`): each solve's median over its steps, the updates
+  unconstrained engine, `_step.jacobian_free`): each solve's median over its steps, the updates
   per step, and the ratios constrained / engine and 20 links / 5 links.
 
 The error is the max-norm of `(q, p)` at T against `problem.reference([T])` (extended-precision
@@ -427,7 +427,7 @@ class SpringChain(eqx.Module):
 def per_step_rows(config, repeats, out) -> list[dict]:
     """The time of one step (the whole solve's median over its steps), `CGVI(degree)` at one
     `dt`: the damped chain of each number of links, and the 5-link chain's points on springs
-    without constraints (the unconstrained engine, `diffrax_vi.picard`)."""
+    without constraints (the unconstrained engine, `_step.jacobian_free`)."""
     degree, dt, steps = config["degree"], config["dt"], config["steps"]
     cases = [(f"chain {n} links (constrained)", problems.rigid_chain(n_links=n))
              for n in config["links"]]

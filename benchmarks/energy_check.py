@@ -58,7 +58,7 @@ def cases():
 def solvers(check: bool):
     import diffrax_vi as dvi
 
-    chord = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False)
+    chord = dvi.ChordIteration(ftol=0.0, predict=True, picard=False)
     return {
         "CGVI(2)": dvi.CGVI(2, energy_check=check),
         "CGVI(4)": dvi.CGVI(4, energy_check=check),
@@ -217,7 +217,7 @@ def runs() -> list[str]:
                               stepsize_controller=diffrax.PIDController(rtol=1e-12, atol=1e-12),
                               saveat=diffrax.SaveAt(t1=True))
     ref = np.asarray(ref.ys[0][-1])
-    chord = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False)
+    chord = dvi.ChordIteration(ftol=0.0, predict=True, picard=False)
     basis = dvi.ShallowNetBasis(dvi.tanh, 10)
     makers = {
         "CGVI(6)": lambda c: dvi.CGVI(6, energy_check=c),

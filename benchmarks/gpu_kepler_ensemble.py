@@ -1,5 +1,5 @@
 """Kepler ensemble throughput on an accelerator: `vmap` of `CGVI(k)` with the Jacobian-free
-engine (`FixedPointIteration(picard=True)`; and `Dopri8`) over N
+engine (`ChordIteration(picard=True)`; and `Dopri8`) over N
 orbits (e in [0.1, 0.6], 10 orbits each, float64), member-orbits per second and the largest
 final position error against the exact solution.
 
@@ -36,7 +36,7 @@ def main() -> None:
     h = 2 * math.pi / args.steps_per_orbit
     n = args.steps_per_orbit * args.orbits
     t1 = n * h
-    engine = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
+    engine = dvi.ChordIteration(ftol=0.0, predict=True, picard=True)
     solvers = {f"CGVI({args.degree}) h=2pi/{args.steps_per_orbit}": (
         dvi.CGVI(args.degree, root_finder=engine), h, None)}
     if args.dopri:

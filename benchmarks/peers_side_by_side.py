@@ -176,7 +176,7 @@ def row(out: Out, solver, setting, steps, err, best, median, compile_s, status="
 def cgvi(degree: int, config: dict):
     """`CGVI(degree)`, with the Jacobian-free engine where `--engine` asked for it."""
     if config.get("engine"):
-        return dvi.CGVI(degree, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True,
+        return dvi.CGVI(degree, root_finder=dvi.ChordIteration(ftol=0.0, predict=True,
                                                                     picard=True))
     return dvi.CGVI(degree)
 
@@ -356,7 +356,7 @@ def main(argv=None) -> None:
                         help="a smoke run: 2 orbits, T = 10, one CGVI configuration each, "
                              "8 members over 1 orbit")
     parser.add_argument("--engine", action="store_true",
-                        help="CGVI with FixedPointIteration(ftol=0, predict=True, picard=True)")
+                        help="CGVI with ChordIteration(ftol=0, predict=True, picard=True)")
     parser.add_argument("--out", default=None, help="also write the tables to this file")
     parser.add_argument("--repeats", type=int, default=None,
                         help="timed runs after the warm-up (default 5; 2 with --quick)")

@@ -3,11 +3,11 @@
 Kepler (e = 0.5, float64), time per step of a whole jitted `diffeqsolve` with constant
 steps, alone and per member-step of a `vmap` over `--members` orbits (e in [0.1, 0.6]):
 
-- `CGVI(k)` by default: the Jacobian-free iteration (`diffrax_vi.picard`) on this
+- `CGVI(k)` by default: the Jacobian-free iteration (`diffrax_vi._step.jacobian_free`) on this
   constant-mass Lagrangian;
 - the same with `picard=False`: the chord iteration with the Jacobian formed once per step;
 - the default projected `NetworkVI` (tanh, `k + 1` neurons, Gauss–Legendre `k + 1`: the
-  same span dimension; the same engine), with `FixedPointIteration(picard=True)`, and with
+  same span dimension; the same engine), with `ChordIteration(picard=True)`, and with
   `RoundoffNewton` without the engine;
 - `diffrax.Dopri8` at `--dopri-rtol`;
 - the floor: a plain-JAX Gauss collocation step with `k + 1` stages, a fixed count of
@@ -137,12 +137,12 @@ def step_costs(args) -> list[str]:
     orbits = args.orbits
     n = args.steps_per_orbit * orbits
     term = kepler(eccentricity=0.5).term
-    fpi = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
+    fpi = dvi.ChordIteration(ftol=0.0, predict=True, picard=True)
     width = degree + 1
     solvers = {
         f"CGVI({degree}) default (engine)": dvi.CGVI(degree),
         f"CGVI({degree}) chord": dvi.CGVI(
-            degree, root_finder=dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False)
+            degree, root_finder=dvi.ChordIteration(ftol=0.0, predict=True, picard=False)
         ),
         f"NetworkVI(tanh {width}) default": dvi.NetworkVI(
             dvi.ShallowNetBasis(dvi.tanh, width), dvi.GaussLegendre(degree + 1)
@@ -246,10 +246,10 @@ def program_sizes(args) -> list[str]:
     import diffrax_vi as dvi
     from diffrax_vi import problems
 
-    fallback = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True,
+    fallback = dvi.ChordIteration(ftol=0.0, predict=True, picard=True,
                                        picard_fallback=True)
-    chord = dvi.FixedPointIteration(ftol=0.0, predict=True)
-    restarting = dvi.FixedPointIteration(ftol=0.0, predict=True, restart=True)
+    chord = dvi.ChordIteration(ftol=0.0, predict=True)
+    restarting = dvi.ChordIteration(ftol=0.0, predict=True, restart=True)
     solvers = {
         "Dopri8": diffrax.Dopri8(),
         "CGVI(6)": dvi.CGVI(6),
@@ -287,7 +287,7 @@ import diffrax, diffrax_vi as dvi
 from diffrax_vi import problems
 name, which = sys.argv[1], sys.argv[2]
 problem = getattr(problems, name)()
-restarting = dvi.FixedPointIteration(ftol=0.0, predict=True, restart=True)
+restarting = dvi.ChordIteration(ftol=0.0, predict=True, restart=True)
 solver = {"Dopri8": diffrax.Dopri8(), "CGVI(6)": dvi.CGVI(6),
           "CGVI(6) chord+restart": dvi.CGVI(6, root_finder=restarting),
           "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))}[which]

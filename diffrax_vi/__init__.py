@@ -7,76 +7,76 @@ library never flips it.
 
 from . import oga as oga
 from . import problems as problems
+from ._activations import elu as elu
+from ._activations import gelu as gelu
+from ._activations import gelu_exact as gelu_exact
+from ._activations import relu_k as relu_k
+from ._activations import sigmoid as sigmoid
+from ._activations import sin as sin
+from ._activations import tanh as tanh
+from ._ansatz import AbstractBasis as AbstractBasis
+from ._ansatz import DenseNetBasis as DenseNetBasis
+from ._ansatz import LagrangeBasis as LagrangeBasis
+from ._ansatz import ShallowNetBasis as ShallowNetBasis
+from ._ansatz.symmetry import MirrorPairs as MirrorPairs
+from ._ansatz.symmetry import NoSymmetry as NoSymmetry
+from ._ansatz.symmetry import SharedMirrorPairs as SharedMirrorPairs
+from ._ensemble import ensemble as ensemble
+from ._ensemble import ensemble_gather as ensemble_gather
+from ._ensemble import ensemble_mesh as ensemble_mesh
 from ._explicit import BlanesMoan as BlanesMoan
 from ._explicit import Composition as Composition
 from ._explicit import StormerVerlet as StormerVerlet
+from ._fallback import AllParameterFallbackWarning as AllParameterFallbackWarning
+from ._hidden_layers import FirstSeedLayer as FirstSeedLayer
+from ._hidden_layers import SeedLayer as SeedLayer
+from ._hidden_layers import UniformLayer as UniformLayer
+from ._interpolation import NetworkInterpolation as NetworkInterpolation
+from ._methods import CGVI as CGVI
+from ._methods import VISE as VISE
+from ._methods import DenseNet as DenseNet
+from ._methods import ShallowNet as ShallowNet
+from ._methods import ShallowNetAutodiff as ShallowNetAutodiff
+from ._methods import ShallowNetAutodiffReversible as ShallowNetAutodiffReversible
+from ._methods import ShallowNetReversible as ShallowNetReversible
+from ._parameter_seed import FitProblem as FitProblem
+from ._quadrature import GaussLegendre as GaussLegendre
+from ._quadrature import Simpson as Simpson
+from ._results import StepReport as StepReport
+from ._results import describe_failure as describe_failure
+from ._results import failure_kind as failure_kind
+from ._root_finder import AbstractStepRootFinder as AbstractStepRootFinder
+from ._root_finder import ChordIteration as ChordIteration
+from ._root_finder import LevenbergMarquardt as LevenbergMarquardt
+from ._root_finder import RegularisedNewton as RegularisedNewton
+from ._root_finder import RoundoffNewton as RoundoffNewton
+from ._root_finder import StepHints as StepHints
+from ._seeding import LSGD as LSGD
+from ._seeding import AbstractInitialTrajectory as AbstractInitialTrajectory
+from ._seeding import AbstractParameterSeed as AbstractParameterSeed
+from ._seeding import HermiteExtrapolation as HermiteExtrapolation
+from ._seeding import InitialWeights as InitialWeights
+from ._seeding import IntegratorExtrapolation as IntegratorExtrapolation
+from ._seeding import LeastSquaresFit as LeastSquaresFit
+from ._seeding import NoExtrapolation as NoExtrapolation
+from ._seeding import PreviousStep as PreviousStep
+from ._seeding import SeedPolicy as SeedPolicy
+from ._seeding import TrainingMethod as TrainingMethod
+from ._seeding import TrajectoryFit as TrajectoryFit
+from ._solver import NetworkVI as NetworkVI
+from ._solver_state import NetworkVIState as NetworkVIState
+from ._spectral import SpectralCGVI as SpectralCGVI
+from ._spectral import spectral_degree as spectral_degree
+from ._spectral import spectral_step_error as spectral_step_error
+from ._step.formulation import AbstractFormulation as AbstractFormulation
+from ._step.formulation import FreeEndpoints as FreeEndpoints
+from ._step.formulation import InterpolatingEndpoints as InterpolatingEndpoints
+from ._step.projection import VariableProjection as VariableProjection
+from ._step_size import RetryFailedSteps as RetryFailedSteps
+from ._terms import IODETerm as IODETerm
+from ._terms import LagrangianTerm as LagrangianTerm
 from ._xla_options import compile_loops_whole as compile_loops_whole
 from ._xla_options import loops_compiled_whole as loops_compiled_whole
-from .activations import elu as elu
-from .activations import gelu as gelu
-from .activations import gelu_exact as gelu_exact
-from .activations import relu_k as relu_k
-from .activations import sigmoid as sigmoid
-from .activations import sin as sin
-from .activations import tanh as tanh
-from .ansatz import AbstractBasis as AbstractBasis
-from .ansatz import DenseNetBasis as DenseNetBasis
-from .ansatz import LagrangeBasis as LagrangeBasis
-from .ansatz import ShallowNetBasis as ShallowNetBasis
-from .ansatz.symmetry import MirrorPairs as MirrorPairs
-from .ansatz.symmetry import NoSymmetry as NoSymmetry
-from .ansatz.symmetry import SharedMirrorPairs as SharedMirrorPairs
-from .ensemble import ensemble as ensemble
-from .ensemble import ensemble_gather as ensemble_gather
-from .ensemble import ensemble_mesh as ensemble_mesh
-from .fallback import AllParameterFallbackWarning as AllParameterFallbackWarning
-from .formulation import AbstractFormulation as AbstractFormulation
-from .formulation import FreeEndpoints as FreeEndpoints
-from .formulation import InterpolatingEndpoints as InterpolatingEndpoints
-from .hidden_layers import FirstSeedLayer as FirstSeedLayer
-from .hidden_layers import SeedLayer as SeedLayer
-from .hidden_layers import UniformLayer as UniformLayer
-from .interpolation import NetworkInterpolation as NetworkInterpolation
-from .methods import CGVI as CGVI
-from .methods import VISE as VISE
-from .methods import DenseNet as DenseNet
-from .methods import ShallowNet as ShallowNet
-from .methods import ShallowNetAutodiff as ShallowNetAutodiff
-from .methods import ShallowNetAutodiffReversible as ShallowNetAutodiffReversible
-from .methods import ShallowNetReversible as ShallowNetReversible
-from .parameter_seed import FitProblem as FitProblem
-from .projection import VariableProjection as VariableProjection
-from .quadrature import GaussLegendre as GaussLegendre
-from .quadrature import Simpson as Simpson
-from .results import StepReport as StepReport
-from .results import describe_failure as describe_failure
-from .results import failure_kind as failure_kind
-from .root_finders import AbstractStepRootFinder as AbstractStepRootFinder
-from .root_finders import FixedPointIteration as FixedPointIteration
-from .root_finders import LevenbergMarquardt as LevenbergMarquardt
-from .root_finders import RegularisedNewton as RegularisedNewton
-from .root_finders import RoundoffNewton as RoundoffNewton
-from .root_finders import StepHints as StepHints
-from .seeding import LSGD as LSGD
-from .seeding import AbstractInitialTrajectory as AbstractInitialTrajectory
-from .seeding import AbstractParameterSeed as AbstractParameterSeed
-from .seeding import HermiteExtrapolation as HermiteExtrapolation
-from .seeding import InitialWeights as InitialWeights
-from .seeding import IntegratorExtrapolation as IntegratorExtrapolation
-from .seeding import LeastSquaresFit as LeastSquaresFit
-from .seeding import NoExtrapolation as NoExtrapolation
-from .seeding import PreviousStep as PreviousStep
-from .seeding import SeedPolicy as SeedPolicy
-from .seeding import TrainingMethod as TrainingMethod
-from .seeding import TrajectoryFit as TrajectoryFit
-from .solver import NetworkVI as NetworkVI
-from .solver_state import NetworkVIState as NetworkVIState
-from .spectral import SpectralCGVI as SpectralCGVI
-from .spectral import spectral_degree as spectral_degree
-from .spectral import spectral_step_error as spectral_step_error
-from .step_size import RetryFailedSteps as RetryFailedSteps
-from .terms import IODETerm as IODETerm
-from .terms import LagrangianTerm as LagrangianTerm
 
 __version__ = "0.1.0.dev0"
 
@@ -144,7 +144,7 @@ __all__ = [
     "LevenbergMarquardt",
     "RegularisedNewton",
     "RoundoffNewton",
-    "FixedPointIteration",
+    "ChordIteration",
     # Seeds
     "SeedPolicy",
     "AbstractInitialTrajectory",
@@ -174,8 +174,8 @@ __all__ = [
 
 # sympy takes over a second to import: the pieces written with it load on first use.
 _LAZY = {
-    "compile_exprs": ("diffrax_vi.codegen", "compile_exprs"),
-    "sympy_activation": ("diffrax_vi.codegen", "sympy_activation"),
+    "compile_exprs": ("diffrax_vi._codegen", "compile_exprs"),
+    "sympy_activation": ("diffrax_vi._codegen", "sympy_activation"),
     "SymbolicAnsatz": ("diffrax_vi.symbolic.ansatz", "SymbolicAnsatz"),
     "VISEBasis": ("diffrax_vi.symbolic.ansatz", "VISEBasis"),
     "SympyLagrangianTerm": ("diffrax_vi.symbolic.terms", "SympyLagrangianTerm"),

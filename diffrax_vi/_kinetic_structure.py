@@ -50,7 +50,7 @@ def kinetic_structure(term, t, q, args) -> KineticStructure | None:
     """The `KineticStructure` of the Lagrangian of `term` (a `LagrangianTerm`) at the shapes
     and dtypes of `t`, `q` and `args`; `None` where the term is no Lagrangian or its program
     cannot be read."""
-    from .terms import LagrangianTerm
+    from ._terms import LagrangianTerm
 
     if not isinstance(term, LagrangianTerm):
         return None

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffrax_vi as dvi
-from diffrax_vi.quadrature import Simpson
+from diffrax_vi._quadrature import Simpson
 
 
 def solve_problem(problem, solver, *, dtype=None, y0=None, saveat=None, **kwargs):

@@ -14,7 +14,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.activations import package_activation
+from diffrax_vi._activations import package_activation
 
 # (JAX's function, the package's activation it computes)
 RECOGNISED = [

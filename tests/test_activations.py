@@ -1,4 +1,4 @@
-"""The activations (`diffrax_vi.activations`): dtypes, values, `relu_k` and the precision
+"""The activations (`diffrax_vi._activations`): dtypes, values, `relu_k` and the precision
 check of user activations."""
 
 import jax
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi.activations import ReLUk, activation_name, check_activation
+from diffrax_vi._activations import ReLUk, activation_name, check_activation
 
 F64 = jnp.float64
 

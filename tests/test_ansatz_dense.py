@@ -10,10 +10,10 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import MirrorPairs, problems
-from diffrax_vi.ansatz.base import AbstractBasis
-from diffrax_vi.ansatz.dense import DenseNetBasis
-from diffrax_vi.parameter_seed import FitProblem, fit_problem
-from diffrax_vi.seeding.training import LSGD, TrainingMethod, box_layer, default_init_scale
+from diffrax_vi._ansatz.base import AbstractBasis
+from diffrax_vi._ansatz.dense import DenseNetBasis
+from diffrax_vi._parameter_seed import FitProblem, fit_problem
+from diffrax_vi._seeding.training import LSGD, TrainingMethod, box_layer, default_init_scale
 from tests.helpers import max_relative_error, solve_problem
 
 # ---------------------------------------------------------------------------------------------

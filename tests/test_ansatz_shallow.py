@@ -1,4 +1,4 @@
-"""`ShallowNetBasis` (`diffrax_vi.ansatz.shallow`): evaluation, parameter layout, derivatives,
+"""`ShallowNetBasis` (`diffrax_vi._ansatz.shallow`): evaluation, parameter layout, derivatives,
 `advance`, and its closed-form derivatives (`jet`)."""
 
 import jax
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi.activations import activation_name
-from diffrax_vi.formulation import FreeEndpoints, InterpolatingEndpoints
+from diffrax_vi._activations import activation_name
+from diffrax_vi._step.formulation import FreeEndpoints, InterpolatingEndpoints
 from tests.helpers import random_theta as _theta
 
 F64 = jnp.float64

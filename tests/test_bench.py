@@ -15,6 +15,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
+from diffrax_vi._root_finder.damped_newton import LevenbergMarquardt
 from diffrax_vi.bench import (
     Adaptive,
     Fixed,
@@ -31,7 +32,6 @@ from diffrax_vi.bench import (
 )
 from diffrax_vi.bench.__main__ import main as cli_main
 from diffrax_vi.bench.stability import full_grid
-from diffrax_vi.root_finders.damped_newton import LevenbergMarquardt
 
 
 @dataclasses.dataclass

@@ -2,7 +2,7 @@
 
 The error of each run is compared with the same run in exact arithmetic: the one-step map of
 the cGVI on the oscillator, computed in extended precision from the Galerkin action
-(`diffrax_vi.spectral`). The table is on the studies page.
+(`diffrax_vi._spectral`). The table is on the studies page.
 
 Step sizes: float64 runs of `CGVI(s)` carry a systematic rounding drift of the phase of
 about `1e-15 · ωh` per step. Each degree is measured at the smallest `ωh2` (grid 0.01) at
@@ -25,7 +25,8 @@ import mpmath  # noqa: E402
 import pytest  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
-from diffrax_vi import problems, spectral  # noqa: E402
+from diffrax_vi import _spectral as spectral  # noqa: E402
+from diffrax_vi import problems  # noqa: E402
 
 N1, N2 = 160, 200  # steps over the same span
 OMEGA = mpmath.sqrt(mpmath.mpf(1) / 2)  # the oscillator's frequency

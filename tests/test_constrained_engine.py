@@ -1,5 +1,5 @@
 """The split iteration of the constrained step for a constant kinetic matrix
-(`diffrax_vi._constrained_engine`): taken where the kinetic matrix is constant, the same root
+(`diffrax_vi._step.constrained_engine`): taken where the kinetic matrix is constant, the same root
 as the general solve, and the general solve kept elsewhere."""
 
 import diffrax
@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi import _constrained_engine as engine
-from diffrax_vi import holonomic, problems
+from diffrax_vi import problems
+from diffrax_vi._step import constrained_engine as engine
+from diffrax_vi._step import holonomic as holonomic
 
 jax.config.update("jax_enable_x64", True)
 

@@ -1,4 +1,4 @@
-"""Holonomic constraints: the constrained Galerkin step (`diffrax_vi.holonomic`), its
+"""Holonomic constraints: the constrained Galerkin step (`diffrax_vi._step.holonomic`), its
 problems (spherical pendulum, rigid chain) and its refusals."""
 
 import dataclasses
@@ -12,7 +12,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.holonomic import lobatto_rule
+from diffrax_vi._step.holonomic import lobatto_rule
 
 jax.config.update("jax_enable_x64", True)
 

@@ -1,5 +1,5 @@
 """A start whose singular kinetic matrix leaves coordinates the equations of motion do not see
-is refused by name (`diffrax_vi._kinetic_check`), and the degenerate Lagrangians the solvers
+is refused by name (`diffrax_vi._step.kinetic_check`), and the degenerate Lagrangians the solvers
 do integrate (first order, or mixing first- and second-order coordinates) are not."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi._kinetic_check import (
+from diffrax_vi._step.kinetic_check import (
     DEGENERATE_START_MESSAGE,
     SINGULAR_AT_START,
     blind_directions,

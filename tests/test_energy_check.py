@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi import _energy_check, problems
-from diffrax_vi._energy_check import JUMP_TOLERANCE
+from diffrax_vi import problems
+from diffrax_vi._step import energy_check as _energy_check
+from diffrax_vi._step.energy_check import JUMP_TOLERANCE
 
 jax.config.update("jax_enable_x64", True)
 
@@ -36,7 +37,7 @@ def _elastic_pendulum(t, q, v, args):
 TERM = dvi.LagrangianTerm(_elastic_pendulum)
 # the chord and Newton iterations with their restart from the trajectory seed (where the
 # wrong roots below were found)
-CHORD = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=False, restart=True)
+CHORD = dvi.ChordIteration(ftol=0.0, predict=True, picard=False, restart=True)
 NEWTON = dvi.RoundoffNewton(confirm=False, restart=True)
 
 

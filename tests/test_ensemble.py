@@ -76,7 +76,7 @@ def test_bad_input_is_refused():
 
 
 def test_cpu_compiler_options_fall_back_where_xla_lacks_them(monkeypatch):
-    module = importlib.import_module("diffrax_vi.ensemble")
+    module = importlib.import_module("diffrax_vi._ensemble")
 
     # this jaxlib knows the option, so CPU ensembles compile with it
     if jax.default_backend() == "cpu":

@@ -17,7 +17,7 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi._explicit import _splitting
 from diffrax_vi._explicit._coefficients import composition_gammas, composition_schemes
-from diffrax_vi.results import STEP_FAILURES
+from diffrax_vi._results import STEP_FAILURES
 
 OSC = dvi.problems.harmonic_oscillator(t1=10.0)
 KEPLER = dvi.problems.kepler(0.5, t1=2 * math.pi)

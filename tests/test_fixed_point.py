@@ -1,4 +1,4 @@
-"""FixedPointIteration: the chord iteration for the projected step, beside RoundoffNewton."""
+"""ChordIteration: the chord iteration for the projected step, beside RoundoffNewton."""
 
 import diffrax
 import equinox as eqx
@@ -10,8 +10,8 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.projected_solve import FIRST_TRY, projected_root_find
-from diffrax_vi.root_finders.fixed_point import FixedPointIteration
+from diffrax_vi._root_finder.chord import ChordIteration
+from diffrax_vi._step.projected_solve import FIRST_TRY, projected_root_find
 
 jax.config.update("jax_enable_x64", True)
 
@@ -74,7 +74,7 @@ def test_same_root_as_newton_on_a_step(name, kind):
     make, kw, h, _ = SHORT[name]
     problem = make(**kw)
     newton = family(kind)(dvi.RoundoffNewton(ftol=0.0))
-    chord = family(kind)(FixedPointIteration(ftol=0.0))
+    chord = family(kind)(ChordIteration(ftol=0.0))
 
     @jax.jit
     def solve(y0):
@@ -101,7 +101,7 @@ def test_same_trajectory_as_newton_at_round_off(kind):
     make, kw, h, n = SHORT[name]
     problem = make(**kw)
     newton = run(problem, family(kind)(dvi.RoundoffNewton(ftol=0.0)), h, n)
-    chord = run(problem, family(kind)(FixedPointIteration(ftol=0.0)), h, n)
+    chord = run(problem, family(kind)(ChordIteration(ftol=0.0)), h, n)
     assert newton.result == diffrax.RESULTS.successful
     assert chord.result == diffrax.RESULTS.successful
     for a, b in zip(newton.ys, chord.ys, strict=True):
@@ -118,7 +118,7 @@ def test_double_pendulum_trajectory_counts_and_vmap():
     # CGVI(6) with the chord run to round-off: accurate, iteration counts in the solver state
     # as for Newton, no restart; under vmap the same as a loop of single solves.
     problem = problems.double_pendulum()
-    solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0))
+    solver = dvi.CGVI(6, root_finder=ChordIteration(ftol=0.0))
     h, n = 0.05, 20
 
     @eqx.filter_jit
@@ -153,7 +153,7 @@ def test_network_oscillator_in_one_update(confirm, updates):
     # `confirm` (the default) adds the update that removes the first one's bias.
     problem = problems.harmonic_oscillator()
     solver = dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10), dvi.GaussLegendre(8),
-                           root_finder=FixedPointIteration(confirm=confirm, picard=False),
+                           root_finder=ChordIteration(confirm=confirm, picard=False),
                            iteration_log=10)
     sol = run(problem, solver, 0.1, 10)
     assert sol.result == diffrax.RESULTS.successful
@@ -180,7 +180,7 @@ def _stiff(root_finder, **options):
 def test_fails_loudly_where_the_chord_cannot_contract():
     # Without a second try (an iteration cap within the first), the step must fail, not be
     # accepted wrong.
-    result, _ = _stiff(FixedPointIteration(ftol=1.0), root_find_max_steps=FIRST_TRY)
+    result, _ = _stiff(ChordIteration(ftol=1.0), root_find_max_steps=FIRST_TRY)
     assert result != diffrax.RESULTS.successful
 
 
@@ -190,8 +190,8 @@ def test_a_failed_first_try_goes_on_with_newton():
     # trajectory seed goes on with refreshed Jacobians: the step is Newton's.
     newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0, restart=True))
     assert newton == diffrax.RESULTS.successful
-    for rf in (FixedPointIteration(ftol=1.0, restart=True),
-               FixedPointIteration(ftol=0.0, predict=True, restart=True)):
+    for rf in (ChordIteration(ftol=1.0, restart=True),
+               ChordIteration(ftol=0.0, predict=True, restart=True)):
         result, q = _stiff(rf)
         assert result == diffrax.RESULTS.successful
         np.testing.assert_allclose(np.asarray(q), np.asarray(q_newton), atol=1e-10)
@@ -200,7 +200,7 @@ def test_a_failed_first_try_goes_on_with_newton():
 @pytest.mark.slow
 def test_refresh_solves_where_the_chord_fails():
     newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0, restart=True))
-    refreshing, q_refreshing = _stiff(FixedPointIteration(ftol=1.0, refresh=0.5))
+    refreshing, q_refreshing = _stiff(ChordIteration(ftol=1.0, refresh=0.5))
     assert newton == diffrax.RESULTS.successful
     assert refreshing == diffrax.RESULTS.successful
     np.testing.assert_allclose(np.asarray(q_refreshing), np.asarray(q_newton), atol=1e-10)
@@ -215,7 +215,7 @@ def test_refresh_speeds_up_a_slow_chord_on_a_step():
     @jax.jit
     def solve(y0):
         out = []
-        for rf in (FixedPointIteration(ftol=0.0), FixedPointIteration(ftol=0.0, refresh=0.1)):
+        for rf in (ChordIteration(ftol=0.0), ChordIteration(ftol=0.0, refresh=0.1)):
             solver = dvi.CGVI(6, root_finder=rf)
             ctx, span, z0 = step_system(solver, problem, 0.5)
             sol = projected_root_find(solver.formulation, solver.solve_options, ctx, span, z0, 100)
@@ -240,7 +240,7 @@ def _system(z, args):
 @pytest.mark.parametrize("inverse", [True, False])
 @pytest.mark.parametrize("refresh", [None, 0.5])
 def test_root_finder_on_its_own(inverse, refresh):
-    rf = FixedPointIteration(ftol=0.0, inverse=inverse, refresh=refresh)
+    rf = ChordIteration(ftol=0.0, inverse=inverse, refresh=refresh)
     sol = optx.root_find(_system, rf, jnp.array([1.1, 1.9]), max_steps=50, throw=False)
     assert sol.result == optx.RESULTS.successful
     np.testing.assert_allclose(np.asarray(sol.value), [1.0, 2.0], rtol=0, atol=4e-16)
@@ -251,7 +251,7 @@ def test_root_finder_on_its_own(inverse, refresh):
 
 
 def test_divergence_and_non_finite_are_reported():
-    rf = FixedPointIteration()
+    rf = ChordIteration()
     # arctan from beyond its turning region: the chord overshoots further on every update
     sol = optx.root_find(lambda z, a: jnp.arctan(z), rf, jnp.array([1.5]), max_steps=50,
                          throw=False)
@@ -265,7 +265,7 @@ def test_divergence_and_non_finite_are_reported():
 @pytest.mark.parametrize("inverse, predict", [(True, False), (False, False), (True, True)])
 def test_low_precision_stays_in_its_dtype(dtype, inverse, predict):
     # Below 32 bits the factorisation runs in float32; the iterates keep the working dtype.
-    rf = FixedPointIteration(ftol=0.0, inverse=inverse, predict=predict)
+    rf = ChordIteration(ftol=0.0, inverse=inverse, predict=predict)
     sol = optx.root_find(_system, rf, jnp.array([1.1, 1.9], dtype), max_steps=50, throw=False)
     assert sol.value.dtype == dtype and sol.state.f.dtype == dtype
     assert sol.result == optx.RESULTS.successful
@@ -274,22 +274,22 @@ def test_low_precision_stays_in_its_dtype(dtype, inverse, predict):
 
 
 def test_is_accepted_where_newton_is_and_checks_its_settings():
-    rf = FixedPointIteration(ftol=0.0)
+    rf = ChordIteration(ftol=0.0)
     assert isinstance(rf, dvi.RoundoffNewton)
     solver = network(rf)
     assert isinstance(solver.formulation, dvi.VariableProjection)
     assert solver.root_finder is rf
     assert dvi.CGVI(6, root_finder=rf).root_finder is rf
     with pytest.raises(ValueError, match="refresh"):
-        FixedPointIteration(refresh=1.5)
+        ChordIteration(refresh=1.5)
     with pytest.raises(ValueError, match="refresh"):
-        FixedPointIteration(refresh=0)
+        ChordIteration(refresh=0)
     with pytest.raises(TypeError, match="inverse"):
-        FixedPointIteration(inverse=1)
+        ChordIteration(inverse=1)
     with pytest.raises(TypeError, match="predict"):
-        FixedPointIteration(predict="yes")
+        ChordIteration(predict="yes")
     with pytest.raises(ValueError, match="ftol"):  # the parent's checks still run
-        FixedPointIteration(ftol=-1)
+        ChordIteration(ftol=-1)
 
 
 # -- round-off by prediction ---------------------------------------------------------------------
@@ -309,7 +309,7 @@ def test_predict_reaches_round_off_in_fewer_updates(name):
         start = jax.tree_util.tree_map(lambda x: x * (1 + 1e-3) + 1e-4, a.value)
         out = []
         for predict in (False, True):
-            solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0, predict=predict))
+            solver = dvi.CGVI(6, root_finder=ChordIteration(ftol=0.0, predict=predict))
             sol = projected_root_find(solver.formulation, solver.solve_options, ctx, span,
                                       start, 50)
             out.append((newton.formulation.projected_end_state(sol.value, span, ctx),
@@ -333,7 +333,7 @@ def test_predict_halves_the_updates_of_a_run_to_round_off():
     ends, histograms = [], []
     for predict in (False, True):
         # the chord iteration itself (not the Jacobian-free one this Lagrangian allows)
-        solver = dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0, inverse=False,
+        solver = dvi.CGVI(6, root_finder=ChordIteration(ftol=0.0, inverse=False,
                                                              predict=predict, picard=False))
         sol = run(problem, solver, h, n)
         assert sol.result == diffrax.RESULTS.successful
@@ -354,7 +354,7 @@ def test_kinetic_inverse_is_the_jacobian_inverse_without_forces(kind, uniform):
     mass = jnp.array([[2.0, 0.3], [0.3, 1.0]])
     term = dvi.LagrangianTerm(lambda t, q, v, args: 0.5 * v @ mass @ v)
     y0 = (jnp.array([0.3, -0.2]), jnp.array([0.5, 0.1]))
-    solver = family(kind)(FixedPointIteration(matrix="kinetic"))
+    solver = family(kind)(ChordIteration(matrix="kinetic"))
     form = solver.formulation
     dim = 2
     ctx = solver.step_context(term, 0.0, 0.25, y0, None)
@@ -387,7 +387,7 @@ def test_kinetic_iteration_reaches_newtons_trajectory(name):
     make, kw, h, n = SHORT[name]
     problem = make(**kw)
     newton = run(problem, dvi.CGVI(6, root_finder=dvi.RoundoffNewton(ftol=0.0)), h, n)
-    kinetic = run(problem, dvi.CGVI(6, root_finder=FixedPointIteration(ftol=0.0,
+    kinetic = run(problem, dvi.CGVI(6, root_finder=ChordIteration(ftol=0.0,
                                                                        matrix="kinetic")), h, n)
     assert kinetic.result == diffrax.RESULTS.successful
     for a, b in zip(newton.ys, kinetic.ys, strict=True):
@@ -406,7 +406,7 @@ def test_kinetic_iteration_on_the_outer_solar_system():
     problem = problems.outer_solar_system(dtype=jnp.float64)
     h, n = 500.0, 10
     newton = run(problem, dvi.CGVI(7, root_finder=dvi.RoundoffNewton(ftol=0.0)), h, n)
-    kinetic = run(problem, dvi.CGVI(7, root_finder=FixedPointIteration(
+    kinetic = run(problem, dvi.CGVI(7, root_finder=ChordIteration(
         ftol=0.0, matrix="kinetic")), h, n)
     assert kinetic.result == diffrax.RESULTS.successful
     a, b = np.asarray(newton.ys[0]), np.asarray(kinetic.ys[0])
@@ -416,7 +416,7 @@ def test_kinetic_iteration_on_the_outer_solar_system():
 @pytest.mark.slow  # the kinetic solve: test_kinetic_iteration_reaches_newtons_trajectory
 def test_kinetic_iteration_with_a_network_and_under_vmap():
     problem = problems.double_pendulum()
-    solver = network(FixedPointIteration(ftol=0.0, matrix="kinetic"))
+    solver = network(ChordIteration(ftol=0.0, matrix="kinetic"))
     h, n = 0.05, 10
 
     @eqx.filter_jit
@@ -443,10 +443,10 @@ def test_kinetic_iteration_with_a_network_and_under_vmap():
 def test_kinetic_iteration_fails_loudly_or_refreshes():
     # The stiff spring: the kinetic matrix cannot see the force's stiffness. Without a
     # refresh the step fails; with one, the iteration turns into Newton's and solves it.
-    result, _ = _stiff(FixedPointIteration(ftol=1.0, matrix="kinetic"))
+    result, _ = _stiff(ChordIteration(ftol=1.0, matrix="kinetic"))
     assert result != diffrax.RESULTS.successful
     newton, q_newton = _stiff(dvi.RoundoffNewton(ftol=1.0, restart=True))
-    refreshing, q_refreshing = _stiff(FixedPointIteration(ftol=1.0, matrix="kinetic",
+    refreshing, q_refreshing = _stiff(ChordIteration(ftol=1.0, matrix="kinetic",
                                                           refresh=0.5, restart=True))
     assert refreshing == diffrax.RESULTS.successful
     np.testing.assert_allclose(np.asarray(q_refreshing), np.asarray(q_newton), atol=1e-10)
@@ -457,7 +457,7 @@ def test_kinetic_iteration_refuses_a_degenerate_lagrangian_loudly():
     term = dvi.LagrangianTerm(lambda t, q, v, args: q[0] * v[1] - 0.5 * q @ q)
     y0 = (jnp.array([0.5, 0.2]), jnp.array([0.0, 0.5]))
     sol = diffrax.diffeqsolve(
-        term, dvi.CGVI(4, root_finder=FixedPointIteration(matrix="kinetic")), 0.0, 0.3, 0.1,
+        term, dvi.CGVI(4, root_finder=ChordIteration(matrix="kinetic")), 0.0, 0.3, 0.1,
         y0, max_steps=5, throw=False,
     )
     assert sol.result != diffrax.RESULTS.successful
@@ -465,8 +465,8 @@ def test_kinetic_iteration_refuses_a_degenerate_lagrangian_loudly():
 
 def test_kinetic_matrix_needs_the_projected_step():
     with pytest.raises(ValueError, match="matrix"):
-        FixedPointIteration(matrix="mass")
-    rf = FixedPointIteration(matrix="kinetic")
+        ChordIteration(matrix="mass")
+    rf = ChordIteration(matrix="kinetic")
     with pytest.raises(ValueError, match="kinetic"):
         optx.root_find(_system, rf, jnp.array([1.1, 1.9]), max_steps=5, throw=False)
 
@@ -474,7 +474,7 @@ def test_kinetic_matrix_needs_the_projected_step():
 @pytest.mark.parametrize("dtype", [pytest.param(jnp.float32, marks=pytest.mark.slow), jnp.float16])
 def test_kinetic_iteration_stays_in_its_dtype(dtype):
     problem = problems.harmonic_oscillator(dtype=dtype)
-    solver = dvi.CGVI(4, root_finder=FixedPointIteration(matrix="kinetic"))
+    solver = dvi.CGVI(4, root_finder=ChordIteration(matrix="kinetic"))
     t0, t1, dt = (jnp.asarray(x, dtype) for x in (0.0, 2.0, 0.25))  # times in the state's dtype
     sol = diffrax.diffeqsolve(problem.term, solver, t0, t1, dt, problem.y0,
                               args=problem.args, max_steps=8, throw=False)
@@ -486,9 +486,9 @@ def test_kinetic_iteration_stays_in_its_dtype(dtype):
 
 
 def test_confirm_is_checked_and_inherited():
-    assert dvi.RoundoffNewton().confirm and FixedPointIteration().confirm
+    assert dvi.RoundoffNewton().confirm and ChordIteration().confirm
     assert not dvi.RoundoffNewton(confirm=False).confirm
-    for cls in (dvi.RoundoffNewton, FixedPointIteration):
+    for cls in (dvi.RoundoffNewton, ChordIteration):
         with pytest.raises(TypeError, match="confirm"):
             cls(confirm=1)
     # the network's default root finder does not confirm; CGVI's does
@@ -497,7 +497,7 @@ def test_confirm_is_checked_and_inherited():
 
 
 @pytest.mark.parametrize("root_finder", [dvi.RoundoffNewton(ftol=1.0),
-                                         FixedPointIteration(ftol=0.0, predict=True)])
+                                         ChordIteration(ftol=0.0, predict=True)])
 def test_a_non_finite_start_ends_the_solve_at_once(root_finder):
     # Run as one whole solve (the solver's hints), a start whose residual is not finite is
     # reported as such, with no update made: it neither loops to the cap nor passes.
@@ -518,7 +518,7 @@ def test_the_hint_inverse_starts_the_iteration(given, newton):
     factorisation at the start of the chord iteration and in every Newton update; where it
     is not finite (a vanished pivot), the pivoted factorisation takes over and the solve
     ends at the same root."""
-    from diffrax_vi.root_finders.step_hints import StepHints, step_options
+    from diffrax_vi._root_finder.step_hints import StepHints, step_options
 
     used = []
 
@@ -528,7 +528,7 @@ def test_the_hint_inverse_starts_the_iteration(given, newton):
         exact = jnp.linalg.inv(jac)
         return exact if given == "exact" else exact * jnp.nan
 
-    rf = dvi.RoundoffNewton(ftol=0.0) if newton else FixedPointIteration(ftol=0.0, predict=True)
+    rf = dvi.RoundoffNewton(ftol=0.0) if newton else ChordIteration(ftol=0.0, predict=True)
     options = step_options(StepHints(inverse=inverse, max_iterations=50))
     sol = optx.root_find(_system, rf, jnp.array([1.1, 1.9]), options=options, max_steps=50,
                          throw=False)
@@ -568,7 +568,7 @@ def test_predict_stops_at_an_update_that_is_rounding_noise(earlier, stops):
     # noise: its ratio to the one before (4e-3) is not the rate; what is left is `earlier`
     # times the noise. A fast rate (1e-5) ends the solve there; a slow one, or none known
     # (the first update), does not.
-    rf = FixedPointIteration(ftol=0.0, predict=True)
+    rf = ChordIteration(ftol=0.0, predict=True)
     eps = float(jnp.finfo(jnp.float64).eps)
     y = jnp.array([1.0 + eps, 0.5])
 
@@ -586,9 +586,9 @@ def test_predict_stops_at_an_update_that_is_rounding_noise(earlier, stops):
 # -- the loop's carry ------------------------------------------------------------------------------
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
 def test_loop_layout_packs_and_restores_the_state_exactly(dtype):
-    from diffrax_vi.root_finders.newton import _LoopLayout
+    from diffrax_vi._root_finder.newton import _LoopLayout
 
-    rf = FixedPointIteration(ftol=0.0, predict=True)
+    rf = ChordIteration(ftol=0.0, predict=True)
     state = rf.init(lambda z, a: (z * z - 2, None), jnp.ones(3, dtype), None, {}, None, None,
                     frozenset())
     state = eqx.tree_at(lambda s: (s.step_norm, s.contraction, s.stalls, s.iterations,
@@ -610,7 +610,7 @@ def test_loop_layout_packs_and_restores_the_state_exactly(dtype):
 
 @pytest.mark.parametrize("refresh", [None, 0.5])
 def test_loop_constants_are_what_an_update_leaves_alone(refresh):
-    rf = FixedPointIteration(ftol=0.0, refresh=refresh)
+    rf = ChordIteration(ftol=0.0, refresh=refresh)
 
     def fn(z, args):
         return z * z * z - jnp.array([2.0, 3.0]), None

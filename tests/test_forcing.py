@@ -12,7 +12,7 @@ from diffrax_vi import problems
 
 jax.config.update("jax_enable_x64", True)
 
-ENGINE = dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
+ENGINE = dvi.ChordIteration(ftol=0.0, predict=True, picard=True)
 
 
 def _final_error(problem, solver, steps: int) -> float:

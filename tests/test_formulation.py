@@ -1,4 +1,4 @@
-"""The discrete action and the endpoint equations (`diffrax_vi.formulation`), and their
+"""The discrete action and the endpoint equations (`diffrax_vi._step.formulation`), and their
 Jacobian by coordinate blocks (`jacobian="structured"`)."""
 
 import jax
@@ -8,16 +8,16 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.formulation import (
+from diffrax_vi._quadrature import GaussLegendre
+from diffrax_vi._seeding.fit import LeastSquaresFit
+from diffrax_vi._step.formulation import (
     FreeEndpoints,
     InterpolatingEndpoints,
     StepContext,
     action_gradient,
     stage_values,
 )
-from diffrax_vi.quadrature import GaussLegendre
-from diffrax_vi.seeding.fit import LeastSquaresFit
-from diffrax_vi.terms import LagrangianTerm
+from diffrax_vi._terms import LagrangianTerm
 from tests.helpers import random_theta as _theta
 
 F64 = jnp.float64

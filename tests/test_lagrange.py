@@ -1,4 +1,4 @@
-"""Lagrange weights through fixed points (`diffrax_vi.lagrange`)."""
+"""Lagrange weights through fixed points (`diffrax_vi._lagrange`)."""
 
 import math
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi.lagrange import lagrange_values_and_slopes, lagrange_weights
+from diffrax_vi._lagrange import lagrange_values_and_slopes, lagrange_weights
 
 F64 = jnp.float64
 

@@ -1,4 +1,4 @@
-"""A conditional that stays lazy under `vmap` (`diffrax_vi.lazy`)."""
+"""A conditional that stays lazy under `vmap` (`diffrax_vi._lazy`)."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -12,7 +12,7 @@ def test_lazy_conditional_skips_the_expensive_branch_under_vmap():
 
     import jax
 
-    from diffrax_vi.lazy import unless_all_skip
+    from diffrax_vi._lazy import unless_all_skip
 
     def member(x, need):
         def expensive():  # ~3 Gflop, all of it loop-invariant

@@ -1,4 +1,4 @@
-"""Dense linear algebra in the working precision (`diffrax_vi.linalg`)."""
+"""Dense linear algebra in the working precision (`diffrax_vi._linalg`)."""
 
 import jax
 import jax.numpy as jnp
@@ -12,7 +12,7 @@ F64 = jnp.float64
 def test_damped_least_squares_solves_the_regularised_problem(dtype):
     """`d = argmin ‖J d − r‖² + μ‖d‖²`, also for a singular `J`, against the normal equations
     solved in float64, and in the dtype of the right-hand side."""
-    from diffrax_vi.linalg import damped_least_squares
+    from diffrax_vi._linalg import damped_least_squares
 
     rng = np.random.default_rng(3)
     jac = rng.standard_normal((12, 12))
@@ -34,7 +34,7 @@ def test_damped_least_squares_takes_any_shape_and_several_right_hand_sides(rows)
     """Tall, square and wide matrices (the seed fits are tall, the Newton steps square), and a
     matrix of right-hand sides solved column by column, as the seed fits pass them (the
     right-hand sides ride along as columns of the factorised matrix)."""
-    from diffrax_vi.linalg import damped_least_squares
+    from diffrax_vi._linalg import damped_least_squares
 
     rng = np.random.default_rng(4)
     jac = rng.standard_normal((rows, 12))
@@ -55,7 +55,7 @@ def test_damped_least_squares_takes_any_shape_and_several_right_hand_sides(rows)
 def test_unpivoted_inverse_in_a_row_order(dtype):
     """Gauss–Jordan without pivoting inverts a matrix whose leading entries vanish in its own
     row order but not in the given one, and works in float32 below 32 bits."""
-    from diffrax_vi.linalg import unpivoted_inverse
+    from diffrax_vi._linalg import unpivoted_inverse
 
     rng = np.random.default_rng(5)
     n = 9
@@ -76,7 +76,7 @@ def test_unpivoted_inverse_in_a_row_order(dtype):
 
 def test_unpivoted_inverse_is_non_finite_at_a_zero_pivot():
     """A vanishing pivot is not hidden: the caller sees non-finite entries and falls back."""
-    from diffrax_vi.linalg import unpivoted_inverse
+    from diffrax_vi._linalg import unpivoted_inverse
 
     matrix = jnp.array([[0.0, 1.0], [1.0, 0.0]])
     assert not bool(jnp.all(jnp.isfinite(unpivoted_inverse(matrix))))
@@ -84,7 +84,7 @@ def test_unpivoted_inverse_is_non_finite_at_a_zero_pivot():
 
 
 def test_unpivoted_inverse_refuses_what_it_cannot_invert_by_name():
-    from diffrax_vi.linalg import unpivoted_inverse
+    from diffrax_vi._linalg import unpivoted_inverse
 
     with pytest.raises(ValueError, match="square matrix"):
         unpivoted_inverse(jnp.ones((2, 3)))
@@ -103,7 +103,7 @@ def test_unpivoted_inverse_under_vmap_is_the_loop_of_single_inverses(dtype, n):
     float32 below 32 bits, as the single one)."""
     import jax
 
-    from diffrax_vi.linalg import unpivoted_inverse
+    from diffrax_vi._linalg import unpivoted_inverse
 
     rng = np.random.default_rng(n)
     matrices = jnp.asarray(rng.standard_normal((2, 5, n, n)) + 4 * np.eye(n), dtype)
@@ -125,7 +125,7 @@ def test_unpivoted_inverse_differentiates_as_an_inverse_alone_and_under_vmap():
     derivative of its own): the derivative of the inverse, `−A⁻¹ dA A⁻¹`."""
     import jax
 
-    from diffrax_vi.linalg import unpivoted_inverse
+    from diffrax_vi._linalg import unpivoted_inverse
 
     rng = np.random.default_rng(7)
     matrices = jnp.asarray(rng.standard_normal((4, 6, 6)) + 5 * np.eye(6))
@@ -151,7 +151,7 @@ def test_elimination_solve_is_backward_stable(n, dtype):
     """Gaussian elimination with partial pivoting: the residual of the computed solution is at
     the rounding of the working precision (float32 below it), relative to `‖A‖ ‖x‖`, and the
     result has the dtype of the right-hand side."""
-    from diffrax_vi.linalg import elimination_solve
+    from diffrax_vi._linalg import elimination_solve
 
     rng = np.random.default_rng(n)
     matrix = rng.standard_normal((n, n))
@@ -175,7 +175,7 @@ def test_elimination_solve_is_backward_stable(n, dtype):
 def test_elimination_solve_under_vmap_and_its_failures():
     """`vmap` gives each member's own pivots (the loop's answers), a singular matrix gives
     non-finite entries (the caller's check), and shapes that do not fit are named."""
-    from diffrax_vi.linalg import elimination_solve
+    from diffrax_vi._linalg import elimination_solve
 
     rng = np.random.default_rng(7)
     matrices = rng.standard_normal((6, 5, 5))
@@ -197,7 +197,7 @@ def test_elimination_solve_under_vmap_and_its_failures():
 def test_elimination_solve_compiles_without_library_calls():
     """What it exists for: no LAPACK call and no product for the dot library in its program
     (either keeps XLA's CPU backend from compiling a loop around it whole)."""
-    from diffrax_vi.linalg import elimination_solve
+    from diffrax_vi._linalg import elimination_solve
 
     program = jax.jit(elimination_solve).lower(jnp.ones((6, 6)) + jnp.eye(6), jnp.ones(6))
     text = program.compile().as_text()

@@ -10,7 +10,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.seeding.trajectories import hermite_cubic
+from diffrax_vi._seeding.trajectories import hermite_cubic
 from tests.helpers import max_relative_error, solve_problem
 
 B = dvi.ShallowNetBasis
@@ -294,7 +294,7 @@ def test_hermite_labels_come_from_the_previous_step():
     expected = dvi.IntegratorExtrapolation(4).labels(term, t, h, q0, p0, None)
     got = traj.labels(term, t, h, q0, p0, None)
     np.testing.assert_array_equal(got[0], expected[0])
-    history = dvi.seeding.StepHistory(
+    history = dvi._seeding.StepHistory(
         jnp.array(True), jnp.asarray(0.8), jnp.asarray(0.2), jnp.array([0.4]),
         jnp.array([0.6]), jnp.array([0.3]), jnp.array([-0.2]), jnp.array([0.3]), jnp.array([-0.5]),
     )  # fmt: skip
@@ -346,7 +346,7 @@ def test_vise_constructor_configures_initial_weights():
     # by default the projected step on the polynomial span, solved to round-off by the
     # Jacobian-free iteration where it fits (else the chord iteration)
     assert isinstance(cgvi.formulation, dvi.VariableProjection)
-    assert cgvi.root_finder == dvi.FixedPointIteration(ftol=0.0, predict=True, picard=True)
+    assert cgvi.root_finder == dvi.ChordIteration(ftol=0.0, predict=True, picard=True)
     # a seed option or a damped root finder selects the reference's form
     for options in (
         dict(initial_guess_method=dvi.LeastSquaresFit()),

@@ -1,4 +1,4 @@
-"""The damped root finders (`diffrax_vi.root_finders.damped_newton`): `LevenbergMarquardt` and
+"""The damped root finders (`diffrax_vi._root_finder.damped_newton`): `LevenbergMarquardt` and
 `RegularisedNewton`, their tolerances, Jacobian options and restarts."""
 
 import jax
@@ -8,12 +8,12 @@ import optimistix as optx
 import pytest
 
 import diffrax_vi as dvi
-from diffrax_vi.root_finders.damped_newton import (
+from diffrax_vi._root_finder.damped_newton import (
     LevenbergMarquardt,
     RegularisedNewton,
     default_tolerances,
 )
-from diffrax_vi.root_finders.step_hints import StepHints, step_options
+from diffrax_vi._root_finder.step_hints import StepHints, step_options
 
 F64 = jnp.float64
 

@@ -10,7 +10,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from diffrax_vi.activations import relu_k, tanh  # noqa: E402
+from diffrax_vi._activations import relu_k, tanh  # noqa: E402
+from diffrax_vi._quadrature import Simpson  # noqa: E402
 from diffrax_vi.oga import (  # noqa: E402
     OGA,
     BiasGrid1d,
@@ -24,7 +25,6 @@ from diffrax_vi.oga import (  # noqa: E402
 from diffrax_vi.oga._qr import pivoted_lstsq, qr_append, qr_init  # noqa: E402
 from diffrax_vi.oga.dictionaries import bias_grid  # noqa: E402
 from diffrax_vi.oga.fits import ridged_lstsq  # noqa: E402
-from diffrax_vi.quadrature import Simpson  # noqa: E402
 from tests.helpers import oga_fixture, sqrt_eps  # noqa: E402
 
 RELU3 = relu_k(3)

@@ -11,13 +11,14 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from diffrax_vi.activations import relu_k, tanh  # noqa: E402
-from diffrax_vi.ansatz.symmetry import (  # noqa: E402
+from diffrax_vi._activations import relu_k, tanh  # noqa: E402
+from diffrax_vi._ansatz.symmetry import (  # noqa: E402
     MirrorPairs,
     NoSymmetry,
     SharedMirrorPairs,
     mirror,
 )
+from diffrax_vi._quadrature import Simpson  # noqa: E402
 from diffrax_vi.oga import (  # noqa: E402
     OGA,
     AngularGrid,
@@ -42,7 +43,6 @@ from diffrax_vi.oga import (  # noqa: E402
 from diffrax_vi.oga._qr import jacobi_svd, lu_solve, qr_append, qr_init  # noqa: E402
 from diffrax_vi.oga.dictionaries import weight_grid  # noqa: E402
 from diffrax_vi.oga.fits import guarded_solve  # noqa: E402
-from diffrax_vi.quadrature import Simpson  # noqa: E402
 from tests.helpers import oga_fixture, sqrt_eps  # noqa: E402
 
 RELU3 = relu_k(3)

@@ -1,4 +1,4 @@
-"""The Jacobian-free iteration of the projected step (`diffrax_vi.picard`)."""
+"""The Jacobian-free iteration of the projected step (`diffrax_vi._step.jacobian_free`)."""
 
 import diffrax
 import equinox as eqx
@@ -10,14 +10,14 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi._kinetic_structure import kinetic_structure
-from diffrax_vi.picard import picard_solve, start_at_rest
-from diffrax_vi.root_finders.fixed_point import FixedPointIteration
+from diffrax_vi._root_finder.chord import ChordIteration
+from diffrax_vi._step.jacobian_free import picard_solve, start_at_rest
 
 jax.config.update("jax_enable_x64", True)
 
-CHORD = FixedPointIteration(ftol=0.0, predict=True, picard=False, restart=True)
-ENGINE = FixedPointIteration(ftol=0.0, predict=True, picard=True)
-FALLBACK = FixedPointIteration(ftol=0.0, predict=True, picard=True, picard_fallback=True)
+CHORD = ChordIteration(ftol=0.0, predict=True, picard=False, restart=True)
+ENGINE = ChordIteration(ftol=0.0, predict=True, picard=True)
+FALLBACK = ChordIteration(ftol=0.0, predict=True, picard=True, picard_fallback=True)
 
 MASS = jnp.array([[2.0, 0.3], [0.3, 1.0]])
 
@@ -217,7 +217,7 @@ def test_without_the_fallback_a_step_it_cannot_contract_fails_and_is_retried():
 
 def test_picard_fallback_needs_picard():
     with pytest.raises(ValueError, match="picard_fallback"):
-        FixedPointIteration(picard_fallback=True)
+        ChordIteration(picard_fallback=True)
     with pytest.raises(TypeError, match="picard_fallback"):
         dvi.RoundoffNewton(picard=True, picard_fallback=1)
 
@@ -299,6 +299,6 @@ def test_energy_error_follows_brouwers_law():
 
 def test_picard_must_be_a_bool():
     with pytest.raises(TypeError, match="picard"):
-        FixedPointIteration(picard="yes")
+        ChordIteration(picard="yes")
     with pytest.raises(TypeError, match="restart must be True or False"):
         dvi.RoundoffNewton(restart=1)

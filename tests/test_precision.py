@@ -11,7 +11,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.precision import two_sum
+from diffrax_vi._precision import two_sum
 
 
 def test_two_sum_is_exact():
@@ -118,7 +118,7 @@ def test_compensated_must_be_a_bool():
 
 
 def test_precision_vocabulary():
-    from diffrax_vi.precision import compensated_add, floating_dtype, lapack_dtype
+    from diffrax_vi._precision import compensated_add, floating_dtype, lapack_dtype
 
     assert lapack_dtype(jnp.float16) == np.float32 and lapack_dtype(jnp.float64) == np.float64
     assert floating_dtype(jnp.ones(2, jnp.float16)) == np.float16

@@ -11,13 +11,13 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from diffrax_vi._terms import IODETerm, LagrangianTerm  # noqa: E402
 from diffrax_vi.problems import (  # noqa: E402
     coupled_oscillators,
     double_pendulum,
     harmonic_oscillator,
     pendulum,
 )
-from diffrax_vi.terms import IODETerm, LagrangianTerm  # noqa: E402
 from tests.helpers import solve_adaptive  # noqa: E402
 
 FACTORIES = [harmonic_oscillator, pendulum, double_pendulum, coupled_oscillators]

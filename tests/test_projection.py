@@ -9,7 +9,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.formulation import StepContext
+from diffrax_vi._step.formulation import StepContext
 from tests.helpers import max_relative_error, solve_problem
 
 
@@ -605,7 +605,7 @@ def test_a_span_known_when_traced_reaches_the_root_finder_as_a_constant():
     """optimistix traces the `args` of a root find; the projected step's functions read a
     span known when the step is traced from the step instead, so that it stays a constant
     (and `uniform_span` holds inside the solve); a traced span is passed on as it is."""
-    from diffrax_vi.projected_solve import with_known_span
+    from diffrax_vi._step.projected_solve import with_known_span
 
     solver = dvi.CGVI(4)
     problem = problems.double_pendulum()
@@ -631,7 +631,7 @@ def test_end_on_constraint_is_the_correction_and_the_violation_there(correct):
     public functions give: for a first-order Lagrangian the end position moved onto
     `p = ϑ(q)` (with `correct`) and the distance left there; for a regular one the end state
     as it is and no violation."""
-    from diffrax_vi.degenerate import (
+    from diffrax_vi._step.degenerate import (
         end_on_constraint,
         first_order_end_correction,
         primary_constraint_violation,
@@ -671,7 +671,7 @@ def test_a_known_span_is_the_traced_span(dtype, shape):
     span a traced hidden layer gives inside a compiled step, direction by direction up to
     its sign, to the rounding of the two SVDs (LAPACK's in NumPy and in XLA), in every
     precision; the same directions live."""
-    from diffrax_vi.span import feature_span
+    from diffrax_vi._step.span import feature_span
 
     k, s, d = shape  # R + 2 points, features, coordinates
     rng = np.random.default_rng(k + s + d)

@@ -1,4 +1,4 @@
-"""The quadrature rules (`diffrax_vi.quadrature`): exactness, dtypes and refused counts of
+"""The quadrature rules (`diffrax_vi._quadrature`): exactness, dtypes and refused counts of
 `GaussLegendre` and `Simpson`; Gauss–Legendre and Gauss–Lobatto coefficients computed in
 extended precision, rounded once to the working dtype, with their symmetries exact in that
 dtype (issue 28)."""
@@ -18,9 +18,9 @@ import mpmath  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from diffrax_vi import quadrature  # noqa: E402
-from diffrax_vi.ansatz.polynomial import lobatto_points  # noqa: E402
-from diffrax_vi.quadrature import GaussLegendre, Simpson  # noqa: E402
+from diffrax_vi import _quadrature as quadrature  # noqa: E402
+from diffrax_vi._ansatz.polynomial import lobatto_points  # noqa: E402
+from diffrax_vi._quadrature import GaussLegendre, Simpson  # noqa: E402
 
 F64 = jnp.float64
 NS = range(1, 33)

@@ -14,7 +14,7 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi._explicit._rattle import rattle_step
-from diffrax_vi.holonomic import drift
+from diffrax_vi._step.holonomic import drift
 
 jax.config.update("jax_enable_x64", True)
 

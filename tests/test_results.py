@@ -12,7 +12,7 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.results import STEP_FAILURES
+from diffrax_vi._results import STEP_FAILURES
 from tests.helpers import motionless_cgvi
 
 TS = jnp.linspace(0.0, 0.3, 4)
@@ -137,7 +137,7 @@ def test_successful_solve_reports_its_last_step():
 
 
 def test_result_names_of_one_result_and_of_a_batch():
-    from diffrax_vi.results import result_names
+    from diffrax_vi._results import result_names
 
     assert str(result_names(diffrax.RESULTS.successful)) == "successful"
     stalled = STEP_FAILURES["vi_step_stalled"]

@@ -1,4 +1,4 @@
-"""The implicit-midpoint seed trajectory (`diffrax_vi.seeding.trajectories`)."""
+"""The implicit-midpoint seed trajectory (`diffrax_vi._seeding.trajectories`)."""
 
 import math
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from diffrax_vi import problems
-from diffrax_vi.quadrature import GaussLegendre
-from diffrax_vi.seeding.trajectories import implicit_midpoint, labels_curve
-from diffrax_vi.terms import IODETerm, LagrangianTerm
+from diffrax_vi._quadrature import GaussLegendre
+from diffrax_vi._seeding.trajectories import implicit_midpoint, labels_curve
+from diffrax_vi._terms import IODETerm, LagrangianTerm
 
 F64 = jnp.float64
 

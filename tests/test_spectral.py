@@ -15,7 +15,7 @@ import pytest  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import problems  # noqa: E402
-from diffrax_vi.spectral import (  # noqa: E402
+from diffrax_vi._spectral import (  # noqa: E402
     DEFAULT_RTOL,
     SpectralCGVI,
     large_step_root_finder,

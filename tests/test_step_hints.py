@@ -1,5 +1,5 @@
 """The typed interface between NetworkVI and its root finder
-(`diffrax_vi.root_finders.step_hints`)."""
+(`diffrax_vi._root_finder.step_hints`)."""
 
 import diffrax
 import jax
@@ -9,7 +9,7 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import diffrax_vi as dvi
-from diffrax_vi.root_finders.step_hints import (
+from diffrax_vi._root_finder.step_hints import (
     HINT_FEATURES,
     AbstractStepRootFinder,
     StepHints,
@@ -28,7 +28,7 @@ def test_what_each_root_finder_reads():
     assert missing_hints(dvi.LevenbergMarquardt()) == {}
     assert missing_hints(dvi.RegularisedNewton()) == {}
     assert set(missing_hints(dvi.RoundoffNewton())) == {"outputs", "fallback"}
-    assert set(missing_hints(dvi.FixedPointIteration())) == {"outputs", "fallback"}
+    assert set(missing_hints(dvi.ChordIteration())) == {"outputs", "fallback"}
     assert missing_hints(optx.Newton(rtol=1e-8, atol=1e-8)) == HINT_FEATURES
     # a class attribute alone does not make a root finder read the hints
     class Pretends(optx.Newton):
@@ -160,15 +160,15 @@ def test_each_root_finder_answers_the_steps_questions():
     """What the step asks its root finder beyond optimistix's interface (`traits_of`): any
     optimistix root finder gets the answers of one that reads no hint; ours answer for
     themselves."""
-    from diffrax_vi.root_finders.step_hints import traits_of
+    from diffrax_vi._root_finder.step_hints import traits_of
 
     foreign = traits_of(optx.Newton(rtol=1e-8, atol=1e-8))
     assert not any(foreign.reads_hint(name) for name in HINT_FEATURES)
     assert foreign.jacobian_mode() is None and foreign.companion() is None
     assert foreign.final_residual(None, jnp.float64) is None
     assert not foreign.allows_picard() and not bool(foreign.was_restarted(None))
-    assert traits_of(dvi.FixedPointIteration(picard=True)).allows_picard()
-    assert not traits_of(dvi.FixedPointIteration()).allows_picard()
+    assert traits_of(dvi.ChordIteration(picard=True)).allows_picard()
+    assert not traits_of(dvi.ChordIteration()).allows_picard()
     assert isinstance(traits_of(dvi.RoundoffNewton()).companion(), dvi.LevenbergMarquardt)
     assert traits_of(dvi.LevenbergMarquardt()).companion() is None
     assert traits_of(dvi.LevenbergMarquardt(jacobian="structured")).jacobian_mode() == (

@@ -1,14 +1,14 @@
 """The Jacobian a step's nonlinear solve hands its root finder
-(`diffrax_vi.formulation.jacobian_option`)."""
+(`diffrax_vi._step.formulation.jacobian_option`)."""
 
 import jax.numpy as jnp
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.formulation import FreeEndpoints
-from diffrax_vi.quadrature import GaussLegendre
-from diffrax_vi.root_finders.damped_newton import LevenbergMarquardt
-from diffrax_vi.seeding.fit import LeastSquaresFit
+from diffrax_vi._quadrature import GaussLegendre
+from diffrax_vi._root_finder.damped_newton import LevenbergMarquardt
+from diffrax_vi._seeding.fit import LeastSquaresFit
+from diffrax_vi._step.formulation import FreeEndpoints
 
 F64 = jnp.float64
 
@@ -16,7 +16,7 @@ F64 = jnp.float64
 def test_auto_jacobian_hands_the_closed_form_to_the_root_finder():
     """Under `jacobian="auto"` NetworkVI passes its block Jacobian exactly where
     it has a closed form, and the root finder differentiates otherwise."""
-    from diffrax_vi.formulation import jacobian_option as _jacobian_option
+    from diffrax_vi._step.formulation import jacobian_option as _jacobian_option
 
     problem = problems.double_pendulum(dtype=F64)
     auto, fwd = LevenbergMarquardt(jacobian="auto"), LevenbergMarquardt()

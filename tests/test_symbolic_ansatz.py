@@ -13,9 +13,9 @@ import sympy
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.parameter_seed import fit_problem
-from diffrax_vi.seeding.fit import InitialWeights
-from diffrax_vi.seeding.trajectory_fit import TrajectoryFit
+from diffrax_vi._parameter_seed import fit_problem
+from diffrax_vi._seeding.fit import InitialWeights
+from diffrax_vi._seeding.trajectory_fit import TrajectoryFit
 from diffrax_vi.symbolic.ansatz import SymbolicAnsatz, VISEBasis
 from tests.helpers import henon_heiles_energy as _henon_heiles_energy
 from tests.helpers import henon_heiles_lagrangian as _henon_heiles_lagrangian

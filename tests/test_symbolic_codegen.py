@@ -1,5 +1,5 @@
 """sympy → JAX compilation and the sympy derivative kernels of the network ansätze
-(`diffrax_vi.codegen`, `diffrax_vi.ansatz.sympy_kernels`)."""
+(`diffrax_vi._codegen`, `diffrax_vi._ansatz.sympy_kernels`)."""
 
 
 import jax
@@ -9,9 +9,9 @@ import pytest
 import sympy
 
 import diffrax_vi as dvi
-from diffrax_vi.ansatz.symmetry import MirrorPairs, SharedMirrorPairs
-from diffrax_vi.ansatz.sympy_kernels import symbolic_dense_evaluate, symbolic_shallow_evaluate
-from diffrax_vi.codegen import (
+from diffrax_vi._ansatz.symmetry import MirrorPairs, SharedMirrorPairs
+from diffrax_vi._ansatz.sympy_kernels import symbolic_dense_evaluate, symbolic_shallow_evaluate
+from diffrax_vi._codegen import (
     compile_exprs,
     curve_function,
     symbolic_curve_evaluate,
@@ -99,7 +99,7 @@ ACTIVATIONS = [dvi.tanh, dvi.sigmoid, dvi.sin, dvi.gelu, dvi.elu, dvi.relu_k(3),
 
 
 @pytest.mark.parametrize(
-    "activation", ACTIVATIONS, ids=lambda a: dvi.activations.activation_name(a)
+    "activation", ACTIVATIONS, ids=lambda a: dvi._activations.activation_name(a)
 )
 def test_sympy_activation_matches_jax(activation):
     s = sympy.Symbol("s", real=True)
@@ -189,7 +189,7 @@ def test_shallow_sympy_uses_custom_jvp_and_keeps_float32():
 
 
 def test_dense_sympy_derivatives_match_autodiff():
-    from diffrax_vi.ansatz.dense import DenseNetBasis
+    from diffrax_vi._ansatz.dense import DenseNetBasis
 
     basis = DenseNetBasis(dvi.tanh, 3, 2)
     theta = 0.7 * jax.random.normal(jax.random.PRNGKey(5), (basis.num_params(), 2))

@@ -11,7 +11,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import diffrax_vi as dvi  # noqa: E402
-from diffrax_vi.terms import (  # noqa: E402
+from diffrax_vi._terms import (  # noqa: E402
     AbstractMechanicalTerm,
     IODETerm,
     LagrangianTerm,

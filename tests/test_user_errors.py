@@ -12,8 +12,8 @@ import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
-from diffrax_vi.results import FAILURE_KINDS, STEP_FAILURES
-from diffrax_vi.validation import check_state, check_times
+from diffrax_vi._results import FAILURE_KINDS, STEP_FAILURES
+from diffrax_vi._validation import check_state, check_times
 from tests.helpers import motionless_cgvi
 
 HO = problems.harmonic_oscillator()

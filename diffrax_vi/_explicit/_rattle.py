@@ -24,7 +24,7 @@ makes the step symmetric: the step of `−h` from `(q₁, p₁)` swaps the two k
 to `(q, p)` (with `ν` and `μ` swapped), so it is time-reversible and of order two, and
 compositions of it reach orders four and more. Without a velocity-dependent force it is the
 classical RATTLE (Andersen 1983; Leimkuhler and Skeel 1994): the Lobatto IIIA–IIIB pair of
-`diffrax_vi.holonomic` at `s = 1`, symplectic on the constraint's cotangent bundle, with no
+`diffrax_vi._step.holonomic` at `s = 1`, symplectic on the constraint's cotangent bundle, with no
 Jacobian of the force and no factorisation larger than `M_c × M_c`.
 
 The derivatives of a step are those of its root (`jax.lax.custom_root`: the implicit function
@@ -39,8 +39,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..linalg import solve
-from ..precision import lapack_dtype
+from .._linalg import solve
+from .._precision import lapack_dtype
 from ._structure import force_reads_velocity
 
 __all__ = ["rattle_step"]
@@ -238,7 +238,7 @@ def rattle_step(term, t, h, q: Array, p: Array, args, minv: Array | None,
 
     **Returns:** `q₁`, `p₁` and `ok`, a scalar boolean array: `True` where the start was on
     both constraint levels (within `sqrt(eps)` of the state's size, as
-    `diffrax_vi.holonomic` asks) and every iteration of the step converged to round-off, with a
+    `_step.holonomic` asks) and every iteration of the step converged to round-off, with a
     finite end state. `False` where the constraint could not be reached (a step too long for
     the constraint manifold, an iteration cap too small), or the start is off it.
     """

@@ -12,9 +12,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
-from ..precision import as_dtype, compensated_add
-from ..results import STEP_FAILURES
-from ..terms import LagrangianTerm, unwrap_term
+from .._precision import as_dtype, compensated_add
+from .._results import STEP_FAILURES
+from .._terms import LagrangianTerm, unwrap_term
 from ._coefficients import composition_gammas, composition_schemes, rkn_coefficients
 from ._splitting import (
     KickModel,

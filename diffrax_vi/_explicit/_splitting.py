@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..linalg import elimination_solve
-from ..precision import as_dtype, eps
+from .._linalg import elimination_solve
+from .._precision import as_dtype, eps
 
 __all__ = ["Splitting", "composition_splitting", "kick_drift_splitting", "KickModel",
            "run_splitting", "UNROLL_LIMIT"]

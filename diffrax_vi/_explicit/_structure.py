@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._kinetic_structure import kinetic_structure
-from ..precision import as_dtype, lapack_dtype
+from .._precision import as_dtype, lapack_dtype
 
 __all__ = ["Kinetics", "kinetics", "force_reads_velocity"]
 
@@ -38,7 +38,7 @@ class Kinetics(NamedTuple):
         """`v = M⁻¹ (p − a)`."""
         w = p - self.offset
         # Elementwise, not a dot: a library call in the step would keep XLA's CPU backend from
-        # compiling the whole solve loop as one (see `diffrax_vi.linalg.elimination_solve`).
+        # compiling the whole solve loop as one (see `diffrax_vi._linalg.elimination_solve`).
         return w if self.minv is None else jnp.sum(self.minv * w[None, :], axis=1)
 
 

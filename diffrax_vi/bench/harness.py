@@ -22,8 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._step_size import RetryFailedSteps
 from ..problems import Problem
-from ..step_size import RetryFailedSteps
 from .entries import Adaptive, Entry, Fixed, Heyoka, NotSeparable, SciPy
 from .rows import write_rows
 from .status import classify

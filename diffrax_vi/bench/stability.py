@@ -42,16 +42,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import problems as _problems
-from ..activations import elu, gelu, relu_k, tanh
-from ..ansatz.shallow import ShallowNetBasis
-from ..projection import VariableProjection
-from ..quadrature import GaussLegendre
-from ..root_finders.damped_newton import LevenbergMarquardt, RegularisedNewton
-from ..root_finders.newton import RoundoffNewton
-from ..seeding.policy import SeedPolicy
-from ..seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
-from ..solver import NetworkVI
-from ..step_size import RetryFailedSteps
+from .._activations import elu, gelu, relu_k, tanh
+from .._ansatz.shallow import ShallowNetBasis
+from .._quadrature import GaussLegendre
+from .._root_finder.damped_newton import LevenbergMarquardt, RegularisedNewton
+from .._root_finder.newton import RoundoffNewton
+from .._seeding.policy import SeedPolicy
+from .._seeding.trajectories import HermiteExtrapolation, IntegratorExtrapolation, NoExtrapolation
+from .._solver import NetworkVI
+from .._step.projection import VariableProjection
+from .._step_size import RetryFailedSteps
 from .executor import run_sweep
 from .harness import relative_error
 from .rows import write_rows

@@ -22,14 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from ..results import FAILURE_KINDS, result_names
+from .._results import FAILURE_KINDS, result_names
 
 __all__ = ["STATUSES", "RESULT_STATUS", "classify", "result_name", "converged"]
 
 STATUSES = ("ok", "maxiter", "singular", "diverged", "nonfinite")
 
 # Member name (of diffrax/optimistix/lineax RESULTS) -> status. The failures of a step's solve
-# share their names with `diffrax_vi.results`; members not listed are reported as
+# share their names with `diffrax_vi._results`; members not listed are reported as
 # `error:<name>`.
 RESULT_STATUS: dict[str, str] = {
     "successful": "ok",

@@ -11,17 +11,17 @@ import diffrax
 import jax.numpy as jnp
 
 from .. import problems as _problems
+from .._activations import gelu, tanh
+from .._ansatz.shallow import ShallowNetBasis
 from .._explicit import AbstractSplittingSolver, BlanesMoan, Composition
-from ..activations import gelu, tanh
-from ..ansatz.shallow import ShallowNetBasis
-from ..formulation import FreeEndpoints
-from ..methods import CGVI
-from ..projection import VariableProjection
-from ..quadrature import GaussLegendre
-from ..root_finders.damped_newton import LevenbergMarquardt
-from ..seeding.policy import SeedPolicy
-from ..seeding.trajectories import IntegratorExtrapolation, PreviousStep
-from ..solver import NetworkVI
+from .._methods import CGVI
+from .._quadrature import GaussLegendre
+from .._root_finder.damped_newton import LevenbergMarquardt
+from .._seeding.policy import SeedPolicy
+from .._seeding.trajectories import IntegratorExtrapolation, PreviousStep
+from .._solver import NetworkVI
+from .._step.formulation import FreeEndpoints
+from .._step.projection import VariableProjection
 from .entries import Adaptive, Entry, Fixed, Heyoka, SciPy
 from .peers import heyoka_available
 

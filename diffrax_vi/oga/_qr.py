@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..precision import as_dtype, eps, norm2, sumsq
+from .._precision import as_dtype, eps, norm2, sumsq
 
 __all__ = [
     "QRState",

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..activations import check_activation
-from ..ansatz.symmetry import AbstractSymmetry
-from ..precision import as_dtype, norm2, power_of_two_scale, sqrt_eps
+from .._activations import check_activation
+from .._ansatz.symmetry import AbstractSymmetry
+from .._precision import as_dtype, norm2, power_of_two_scale, sqrt_eps
 from .dictionaries import dictionary_range
 
 

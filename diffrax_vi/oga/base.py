@@ -10,8 +10,8 @@ import math
 import equinox as eqx
 from jaxtyping import Array
 
-from ..ansatz.base import AbstractBasis
-from ..parameter_seed import AbstractParameterSeed, FitProblem
+from .._ansatz.base import AbstractBasis
+from .._parameter_seed import AbstractParameterSeed, FitProblem
 from .dictionaries import bias_pair, dictionary_range
 from .network_fit import check_network, fit_network
 

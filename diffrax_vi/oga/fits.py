@@ -19,7 +19,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..precision import as_dtype, eps, sumsq
+from .._precision import as_dtype, eps, sumsq
 from ._qr import QRState, jacobi_svd, lu_solve, pivoted_lstsq, upper_solve
 
 __all__ = [

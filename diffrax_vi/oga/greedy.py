@@ -23,8 +23,8 @@ import jax.lax as lax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..ansatz.symmetry import AbstractSymmetry, NoSymmetry
-from ..precision import as_dtype, eps, norm2, sqrt_eps
+from .._ansatz.symmetry import AbstractSymmetry, NoSymmetry
+from .._precision import as_dtype, eps, norm2, sqrt_eps
 from ._qr import QRState, qr_append, qr_init
 from ._scaled import ScaledDictionary, build_dictionary, cached_dictionary, validate_inputs
 from .dictionaries import Refined

@@ -6,9 +6,9 @@ from __future__ import annotations
 import jax
 from jaxtyping import Array
 
-from ..ansatz.base import AbstractBasis
-from ..ansatz.shallow import ShallowNetBasis
-from ..parameter_seed import FitProblem
+from .._ansatz.base import AbstractBasis
+from .._ansatz.shallow import ShallowNetBasis
+from .._parameter_seed import FitProblem
 from .greedy import oga_fit
 
 __all__ = ["check_network", "fit_network"]

@@ -15,7 +15,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..precision import as_dtype, sqrt_eps, sumsq
+from .._precision import as_dtype, sqrt_eps, sumsq
 from ._qr import QRState
 
 __all__ = [

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ..terms import AbstractMechanicalTerm
+from .._terms import AbstractMechanicalTerm
 
 __all__ = ["Problem", "ReferenceFlow", "ClosedFormFlow", "DOP853Flow"]
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..terms import LagrangianTerm
+from .._terms import LagrangianTerm
 from .base import ClosedFormFlow, Problem, as_vector, make_state, resolve_dtype
 from .stored import StoredFlow
 

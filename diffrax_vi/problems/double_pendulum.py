@@ -8,7 +8,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..terms import LagrangianTerm
+from .._terms import LagrangianTerm
 from .base import Problem, as_vector, make_state, resolve_dtype
 from .stored import StoredFlow
 

@@ -9,7 +9,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..terms import LagrangianTerm
+from .._terms import LagrangianTerm
 from .base import ClosedFormFlow, Problem, as_vector, make_state, resolve_dtype
 from .harmonic_oscillator import OscillatorHamiltonian, OscillatorLagrangian, OscillatorVelocity
 

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ..terms import LagrangianTerm
+from .._terms import LagrangianTerm
 from .base import Problem, as_vector, make_state, resolve_dtype
 from .extended import ExtendedPrecisionFlow, spd_solve
 

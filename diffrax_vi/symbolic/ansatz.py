@@ -13,8 +13,8 @@ import numpy as np
 import sympy
 from jaxtyping import Array
 
-from ..ansatz.base import AbstractBasis
-from ..codegen import curve_function
+from .._ansatz.base import AbstractBasis
+from .._codegen import curve_function
 
 __all__ = ["SymbolicAnsatz", "VISEBasis"]
 
@@ -45,7 +45,7 @@ class SymbolicAnsatz(AbstractBasis):
     Coordinate `d` follows `q_d(t; W_d)`, an expression in the time symbol `t` and its own
     weights `W_d = (W_{d,1}, .., W_{d,n_d})` (the counts may differ between coordinates), e.g.
     `W1*cos(W2*t + W3)`. The derivatives the solve needs (`∂q/∂t`, `∂q/∂W_k`, `∂²q/∂t∂W_k`)
-    are taken by sympy and compiled to JAX once per expression (`diffrax_vi.codegen`), then
+    are taken by sympy and compiled to JAX once per expression (`diffrax_vi._codegen`), then
     used as closed-form derivatives by JAX's `custom_jvp`. With it the solver is a VISE
     (variational integrator with a symbolic ansatz): use it with the free-endpoint formulation
     (the default) and `InitialWeights` as the seed.

@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import sympy
 from jaxtyping import Array, PyTree
 
-from ..codegen import compile_exprs
-from ..linalg import solve
-from ..terms import LagrangianTerm
-from ..validation import check_state
+from .._codegen import compile_exprs
+from .._linalg import solve
+from .._terms import LagrangianTerm
+from .._validation import check_state
 
 __all__ = ["SympyLagrangianTerm", "sympy_lagrangian_term"]
 
