@@ -46,6 +46,7 @@ from typing import Any
 
 import diffrax
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
@@ -162,25 +163,41 @@ FAILURE_KINDS = {
 
 
 def from_root_find(result: optx.RESULTS) -> diffrax.RESULTS:
-    """The step failure (a `diffrax.RESULTS` member) for the result of a step's root find."""
-    r = diffrax.RESULTS.promote(result)
-    table = (
+    """The step failure (a `diffrax.RESULTS` member) for the result of a step's root find:
+    one lookup in a table over optimistix's results (a chain of comparisons would be one
+    instruction each in every compiled step)."""
+    value = lookup(_ROOT_FIND_TABLE, result._value)
+    return eqx.tree_at(lambda r: r._value, diffrax.RESULTS.successful, value)
+
+
+def lookup(table: np.ndarray, index) -> Array:
+    """`table[index]` for a small constant table and an index known to lie in it: taken as
+    unsigned and in bounds, so that neither a wrap of negative indices nor clamping is
+    compiled."""
+    index = jnp.asarray(index).astype(jnp.uint32)
+    return jnp.asarray(table).at[index].get(mode="promise_in_bounds")
+
+
+def _root_find_table() -> np.ndarray:
+    """`table[i]`: the index of the `diffrax.RESULTS` member for optimistix's result `i`."""
+    names = dict((
         ("nonlinear_max_steps_reached", "vi_step_max_iterations"),
         ("nonlinear_divergence", "vi_step_stalled"),
         ("stagnation", "vi_step_stalled"),
         ("nonfinite", "vi_step_nonfinite"),
         ("nonfinite_input", "vi_step_nonfinite"),
-    )
-    out = diffrax.RESULTS.where(
-        r == diffrax.RESULTS.successful,
-        diffrax.RESULTS.successful,
-        STEP_FAILURES["vi_step_singular"],
-    )
-    for source, target in table:
-        out = diffrax.RESULTS.where(
-            r == getattr(diffrax.RESULTS, source), STEP_FAILURES[target], out
-        )
-    return out
+    ))
+    table = np.full(len(optx.RESULTS), int(STEP_FAILURES["vi_step_singular"]._value), np.int32)
+    for name, item in optx.RESULTS._name_to_item.items():
+        index = int(item._value)
+        if name == "successful":
+            table[index] = int(diffrax.RESULTS.successful._value)
+        elif name in names:
+            table[index] = int(STEP_FAILURES[names[name]]._value)
+    return table
+
+
+_ROOT_FIND_TABLE = _root_find_table()
 
 
 def failure_kind(result) -> str | np.ndarray:

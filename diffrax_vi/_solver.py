@@ -17,14 +17,11 @@ from ._ansatz.shallow import ShallowNetBasis
 from ._fallback import warn_all_parameter_fallback
 from ._hidden_layers import UniformLayer
 from ._interpolation import NetworkInterpolation
-from ._lazy import unless_all_skip
-from ._linalg import dense_tangent_solve
 from ._precision import compensated_add
 from ._quadrature import AbstractQuadrature, GaussLegendre
 from ._results import JUMP_TOLERANCE, STEP_FAILURES, StepReport
 from ._root_finder.damped_newton import LevenbergMarquardt
 from ._root_finder.newton import RoundoffNewton
-from ._root_finder.step_hints import traits_of
 from ._seeding.policy import Seed, Seeder, SeedPolicy
 from ._solver_options import check_options
 from ._solver_state import NetworkVIState
@@ -52,15 +49,7 @@ from ._step.holonomic import (
     curve_and_forces,
     no_previous_step,
 )
-from ._step.jacobian_free import (
-    extrapolation,
-    newton_solve,
-    picard_engine,
-    picard_solve,
-    start_at_rest,
-)
 from ._step.kinetic_check import kinetic_matrix_regular
-from ._step.projected_solve import with_known_span
 from ._step.projection import VariableProjection
 from ._terms import AbstractMechanicalTerm, unwrap_term
 from ._validation import check_state, check_times, refuse_nonfinite_times
@@ -243,12 +232,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         ctx = refuse_degenerate_start(ctx)  # its `t` reaches `report.t`, as the times' check
         seed = self.seeder.first_record(ctx)
         zero = jnp.array(0, jnp.int32)
-        node_values = (jnp.zeros((ctx.nodes.shape[0], ctx.q0.shape[0]), ctx.p0.dtype),) * 2
         if ctx.term.has_constraints:
             check_constrained_solver(self.basis, self.error_estimate)
-        engine = None if ctx.term.has_constraints else self._engine(ctx)
-        if engine is not None:  # the first step continues the curve at rest
-            node_values = start_at_rest(engine[1], ctx)
         return NetworkVIState(
             seed=seed,
             iterations=zero,
@@ -272,7 +257,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             ),
             first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
             compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
-            node_values=node_values,
             holonomic_drift=jnp.zeros(2, ctx.q0.dtype),
             holonomic_previous=(
                 no_previous_step(ctx.term, self.basis.degree, ctx.t, ctx.q0, ctx.args)
@@ -298,9 +282,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         state = solver_state
         if ctx.term.has_constraints:
             return self._constrained_step(ctx, state, made_jump)
-        engine = self._engine(ctx)
-        if engine is not None:
-            return self._picard_step(ctx, state, made_jump, *engine)
         seeding = self.seeder
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
@@ -316,82 +297,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         return self._finish_step(
             ctx, state, record, seed, solved.theta, q1, p1, solved.iterations, solved.result,
             solved.residual, solved.tolerance, solved.restarted, compensation, violation,
-            solved.forces,
-        )
-
-    def _engine(self, ctx):
-        """The Jacobian-free iteration's plan where this step takes it (`picard_engine`)."""
-        return picard_engine(traits_of(self.root_finder).allows_picard(), self.formulation, ctx)
-
-    def _picard_step(self, ctx, state, made_jump, plan, structure, span):
-        """The projected step by the Jacobian-free iteration, started from the previous
-        step's node values continued (`picard.extrapolation`); where it does not converge,
-        Newton's iteration on the same equations from the same start
-        (`picard.newton_solve`), and a failure result where that does not either."""
-        form = self.formulation
-        seeding = self.seeder
-        record = seeding.after_jump(state.seed, made_jump)
-        fresh = record.fresh if made_jump is False else record.fresh | made_jump
-        nodes = self.quadrature.nodes_weights_np()[0]
-        ratio = ctx.h / record.h_prev
-        # The node values of the last step continued (those of the curve at rest before the
-        # first step, from `init`); the offsets where they move (else they are constant). A
-        # start only: nothing of it is differentiated.
-        f_start, g_start = jax.lax.stop_gradient(state.node_values)
-        f_start = extrapolation(nodes, ratio, f_start)
-        if structure.offset_moves:
-            g_start = extrapolation(nodes, ratio, g_start)
-        if made_jump is not False:  # after a jump of the state, from rest again
-            rest = start_at_rest(structure, ctx)
-            f_start = jnp.where(made_jump, rest[0], f_start)
-            g_start = jnp.where(made_jump, rest[1], g_start)
-        dtype = ctx.q0.dtype
-        eps = float(jnp.finfo(dtype).eps)
-        tolerance = (self.root_finder.ftol * eps * residual_scale(ctx)).astype(dtype)
-        known = with_known_span(span)((ctx, span, None))
-
-        def residual(z):
-            return form.reduced_residual(z, known)
-
-        def solve(ctx, f_start, g_start):
-            def residual_and_forces(z):
-                return form.reduced_residual_and_forces(z, (ctx, span, None), fused=True)
-
-            picard = picard_solve(plan, structure, ctx, span, (f_start, g_start),
-                                  residual_and_forces)
-
-            def fallback():
-                return newton_solve(structure, ctx, span, picard, residual_and_forces,
-                                   lambda z: form.reduced_residual_and_forces(z, (ctx, span, None)))
-
-            restarted = jnp.array(False)
-            solved = picard
-            if traits_of(self.root_finder).picard_falls_back():
-                solved = unless_all_skip(~picard.converged, fallback, picard)
-                restarted = ~picard.converged
-            return solved.unknowns, (solved.values, solved.iterations, solved.result(),
-                                     solved.residual, restarted)
-
-        # The iteration runs on values without derivatives (the root's come below): nothing of
-        # it is differentiated or kept for a derivative.
-        frozen = jax.tree_util.tree_map(
-            lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x,
-            (ctx, f_start, g_start),
-        )
-        found, (values, n, result, residual_size, restarted) = solve(*frozen)
-        # The step's derivatives are those of its root (implicit differentiation of the
-        # step's equations), not of the iteration that found it.
-        z = jax.lax.custom_root(residual, found, lambda _, __: found, dense_tangent_solve)
-        residual = residual_size
-        theta = form.expand(form.coefficients(z[0], ctx), span)
-        dq, dp = form.projected_increments(z, span, ctx)
-        # a kinetic matrix known to be constant and invertible: regular, no constraint
-        q1, p1, compensation, violation = self._end_state(ctx, state, dq, dp,
-                                                          structure.mass is None)
-        seed = Seed(None, ~fresh, jnp.array(False))
-        return self._finish_step(
-            ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-            compensation, violation, values[0], node_values=values,
+            solved.forces, solved.node_values,
         )
 
     def _constrained_step(self, ctx, state, made_jump):
@@ -501,7 +407,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """Failure results, dense output, the new solver state (the seed policy's record
         accepts the step). `violation` is the end state's distance from the primary
         constraint (`end_on_constraint`); `forces`, the forces at the nodes of the converged
-        curve where the solve has them (else they are evaluated here)."""
+        curve where the solve has them (else they are evaluated here); `node_values`, those
+        the Jacobian-free iteration starts the next step from, where it took this one."""
         finite, result, constraint, first, jump = self._step_result(ctx, state, q1, p1,
                                                                      result, violation)
         # A failed step's end state is never passed off as data: the steps before it stay,
@@ -537,7 +444,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 lambda a: jnp.where(failed, jnp.asarray(jnp.nan, a.dtype), a), dense_info[key]
             )
         new_state = NetworkVIState(
-            seed=self.seeder.accept(ctx, record, theta, curve, q1),
+            seed=self.seeder.accept(ctx, record, theta, curve, q1, node_values),
             iterations=state.iterations + n,
             last_iterations=n,
             max_iterations=jnp.maximum(state.max_iterations, n),
@@ -565,7 +472,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             compensation=jax.tree_util.tree_map(
                 lambda e: jnp.where(failed, jnp.zeros_like(e), e), compensation
             ),
-            node_values=state.node_values if node_values is None else node_values,
             holonomic_drift=state.holonomic_drift,
             holonomic_previous=state.holonomic_previous,
         )

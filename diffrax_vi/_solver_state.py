@@ -45,9 +45,9 @@ class NetworkVIState(eqx.Module):
     - `compensation`: `(e_q, e_p)`, the rounding left over from adding the last step's
       increments to `q` and `p` (compensated summation, `NetworkVI.compensated`): the
       state is `y + compensation` to about twice the working precision. Zeros when off.
-    - `node_values`: `(F, G)`, each `(R, D)`: the forces and the momentum's offsets at the
-      nodes of the last accepted step, from which the Jacobian-free iteration
-      (`diffrax_vi._step.jacobian_free`) starts the next; zeros where that iteration is not used.
+    - `node_values` (read off `seed`): `(F, G)`, each `(R, D)`: the forces and the
+      momentum's offsets at the nodes of the last accepted step, from which the
+      Jacobian-free iteration starts the next; `None` where that iteration is not used.
     - `holonomic_drift`: `(2,)`, for a term with holonomic constraints the largest
       `|g(t, q)|` and `|G(q) v + ∂g/∂t|` at the ends of the steps so far (position and
       velocity level); zeros without constraints.
@@ -69,7 +69,6 @@ class NetworkVIState(eqx.Module):
     report: StepReport
     first_constraint: Array
     compensation: tuple[Array, Array]
-    node_values: tuple[Array, Array]
     holonomic_drift: Array
     holonomic_previous: Any
 
@@ -84,6 +83,10 @@ class NetworkVIState(eqx.Module):
     @property
     def h_prev(self) -> Array:
         return self.seed.h_prev
+
+    @property
+    def node_values(self) -> tuple[Array, Array] | None:
+        return self.seed.node_values
 
     @property
     def history(self) -> StepHistory:

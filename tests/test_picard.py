@@ -5,13 +5,17 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi._kinetic_structure import kinetic_structure
 from diffrax_vi._root_finder.chord import ChordIteration
-from diffrax_vi._step.jacobian_free import picard_solve, start_at_rest
+from diffrax_vi._root_finder.jacobian_free import JacobianFreeIteration
+from diffrax_vi._root_finder.solve import one_step_solve
+from diffrax_vi._root_finder.step_hints import StepHints, step_options
+from diffrax_vi._step.jacobian_free import engine_start, engine_update, start_at_rest
 
 jax.config.update("jax_enable_x64", True)
 
@@ -59,7 +63,7 @@ def _solve(solver, name, n=None, y0=None, saveat=None):
 
 def _engine(solver, term, y0, args, h=0.1):
     ctx = solver.step_context(term, 0.0, h, y0, args)
-    return solver._engine(ctx)
+    return solver.seeder.engine(ctx)
 
 
 def test_structure_is_read_from_the_lagrangian():
@@ -121,12 +125,15 @@ def test_its_step_is_a_root_of_the_step_equations(name):
     solver = dvi.CGVI(6, root_finder=ENGINE)
     term, y0, args = _problem(name)
     ctx = solver.step_context(term, 0.0, CASES[name][1], y0, args)
-    plan, structure, span = solver._engine(ctx)
-    solved = picard_solve(plan, structure, ctx, span, start_at_rest(structure, ctx),
-                          lambda z: solver.formulation.reduced_residual_and_forces(
-                              z, (ctx, span, None), fused=True))
-    assert bool(solved.converged)
-    r, c = solver.formulation.reduced_residual(solved.unknowns, (ctx, span, None))
+    engine = solver.seeder.engine(ctx)
+    span = engine.span
+    hints = StepHints(update=engine_update(engine), max_iterations=100)
+    z, result, _, _ = one_step_solve(
+        JacobianFreeIteration(), lambda z, a: solver.formulation.reduced_residual_and_forces(
+            z, (a[0], span, None), fused=True),
+        engine_start(engine, ctx, start_at_rest(ctx)), (ctx,), step_options(hints))
+    assert result == optx.RESULTS.successful
+    r, c = solver.formulation.reduced_residual(z, (ctx, span, None))
     scale = 1 + max(float(jnp.max(jnp.abs(y0[0]))), float(jnp.max(jnp.abs(y0[1]))))
     assert max(float(jnp.max(jnp.abs(r))), float(jnp.max(jnp.abs(c)))) <= (
         64 * np.finfo(np.float64).eps * scale
@@ -246,7 +253,7 @@ def test_lower_precisions(dtype, bound):
     problem = problems.harmonic_oscillator(dtype=dtype)
     solver = dvi.CGVI(4, root_finder=ENGINE)
     ctx = solver.step_context(problem.term, dtype(0), dtype(0.1), problem.y0, problem.args)
-    assert solver._engine(ctx) is not None
+    assert solver.seeder.engine(ctx) is not None
     sol = diffrax.diffeqsolve(
         problem.term, solver, dtype(0), dtype(1), dtype(0.1), problem.y0, args=problem.args,
         saveat=diffrax.SaveAt(ts=jnp.asarray(problem.ts, dtype)),

@@ -56,15 +56,26 @@ def test_a_plain_optimistix_root_finder_is_told_what_it_lacks():
 
 
 def _captured_hints(monkeypatch, solver) -> list[StepHints]:
+    # every step's root find passes through optimistix's entry point or through the
+    # package's own (`step_root_find`, for a root finder that runs a whole solve in one step)
+    from diffrax_vi._step import projected_solve
+
     seen = []
     root_find = optx.root_find
+    step_root_find = projected_solve.step_root_find
 
     def spy(*args, options=None, **kwargs):
         seen.append(hints_of(options))
         assert set(options) == {"step"}
         return root_find(*args, options=options, **kwargs)
 
+    def step_spy(fn, root_finder, y0, args, options, **kwargs):
+        seen.append(hints_of(options))
+        assert set(options) == {"step"}
+        return step_root_find(fn, root_finder, y0, args, options, **kwargs)
+
     monkeypatch.setattr(optx, "root_find", spy)
+    monkeypatch.setattr(projected_solve, "step_root_find", step_spy)
     sol = diffrax.diffeqsolve(TERM, solver, 0.0, 0.2, 0.1, Y0)
     assert sol.result == diffrax.RESULTS.successful
     return seen

@@ -52,6 +52,11 @@ class StepHints(eqx.Module):
       every iteration) and count its iterations in its state's `iterations`.
     - `restart`: `(first_try, start)`: a solve not converged after `first_try` iterations
       starts once more from `start(args)` (with `max_iterations`).
+    - `update`: `(y, F, args) ↦` an update of the unknowns by a constant matrix, for the
+      Jacobian-free iteration (`JacobianFreeIteration`): the step offers it where its
+      Jacobian is constant but for slowly changing terms.
+    - `fast_residual`: `(y, args) ↦` the residual and its aux as `fn` gives them, evaluated
+      a cheaper way that has no derivatives (for an iteration that needs none).
     - `fallback`: `args ↦` a second starting point (a fresh seed fit), where a solve from the
       given start fails; `fallback_usable(args)` says whether it may be used, and
       `start_at_fallback(args)` makes the solve begin there instead.
@@ -66,6 +71,8 @@ class StepHints(eqx.Module):
     kinetic: Callable | None = None
     max_iterations: int | None = None
     restart: tuple | None = None
+    update: Callable | None = None
+    fast_residual: Callable | None = None
     fallback: Callable | None = None
     fallback_usable: Callable | None = None
     start_at_fallback: Callable | None = None

@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, PyTree
 
 from .._ansatz.base import AbstractBasis
@@ -23,7 +24,7 @@ from .._hidden_layers import FirstSeedLayer, UniformLayer
 from .._lazy import unless_all_skip
 from .._parameter_seed import AbstractParameterSeed, fit_problem, with_constant_grid
 from .._root_finder.damped_newton import AbstractDampedNewton
-from .._root_finder.step_hints import StepHints
+from .._root_finder.step_hints import StepHints, traits_of
 from .._step.formulation import (
     AbstractFormulation,
     FreeEndpoints,
@@ -31,6 +32,7 @@ from .._step.formulation import (
     residual_scale,
     stage_values,
 )
+from .._step.jacobian_free import extrapolation, picard_engine, start_at_rest
 from .._step.projection import VariableProjection
 from ..oga import AbstractOGA, OGA1d
 from .fit import refit_output_weights
@@ -113,7 +115,8 @@ class SeedPolicy(eqx.Module):
         lazy = isinstance(root_finder, AbstractDampedNewton) and (
             isinstance(self.initial_trajectory, PreviousStep) or refits
         )
-        return Seeder(self, formulation, refits, lazy)
+        engine = traits_of(root_finder).allows_picard()
+        return Seeder(self, formulation, refits, lazy, engine)
 
 
 class SeedRecord(eqx.Module):
@@ -123,12 +126,17 @@ class SeedRecord(eqx.Module):
       `fresh` is true (the first step is always seeded by a trajectory fit).
     - `h_prev`: the length of the step `theta` belongs to.
     - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
+    - `node_values`: where the step takes the Jacobian-free iteration, `(F, G)`, each
+      `(R, D)`: the forces and the momentum's offsets at the nodes of the last step's curve
+      (before the first step, of the curve at rest), from which the next step starts;
+      else `None`.
     """
 
     theta: PyTree
     fresh: Array
     h_prev: Array
     history: StepHistory
+    node_values: tuple[Array, Array] | None = None
 
 
 class Seed(NamedTuple):
@@ -144,6 +152,9 @@ class Seed(NamedTuple):
       computed them already (else `None`).
     - `restart_history`: for the projected steps that start from the previous curve
       continued, the history their restart from the trajectory seed reads (else `None`).
+    - `engine`: where the step takes the Jacobian-free iteration, `(Engine, (F, G))`: what
+      the iteration is built from (`_step.jacobian_free.picard_engine`) and the last step's
+      node values continued over this step, from which it starts (else `None`).
     """
 
     start: Any
@@ -152,6 +163,7 @@ class Seed(NamedTuple):
     cold_inputs: tuple | None = None
     fit_inputs: tuple | None = None
     restart_history: StepHistory | None = None
+    engine: tuple | None = None
 
 
 class Seeder(eqx.Module):
@@ -162,13 +174,16 @@ class Seeder(eqx.Module):
     (`refits`), or from the previous curve continued (`PreviousStep`). With a damped root
     finder and a seed that may be carried over (`lazy`), the fresh fit is the root finder's
     fallback instead, computed only where the carried seed is unusable or its solve fails.
-    `VariableProjection` seeds its hidden layer by its `hidden` rule.
+    `VariableProjection` seeds its hidden layer by its `hidden` rule, and where the root
+    finder allows the Jacobian-free iteration (`engine`) and the step offers it, starts from
+    the last step's node values continued.
     """
 
     policy: SeedPolicy
     formulation: AbstractFormulation
     refits: bool = eqx.field(static=True)
     lazy: bool = eqx.field(static=True)
+    engine_allowed: bool = eqx.field(static=True, default=False)
 
     @property
     def initial_trajectory(self) -> AbstractInitialTrajectory:
@@ -179,7 +194,14 @@ class Seeder(eqx.Module):
         """The record before the first step, which seeds itself (`fresh`): computing its seed
         here would put a second copy of the seed fit into the compiled program."""
         theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
-        return SeedRecord(theta, jnp.array(True), ctx.h, StepHistory.empty(ctx.q0, ctx.t))
+        values = start_at_rest(ctx) if self.engine(ctx) is not None else None
+        return SeedRecord(theta, jnp.array(True), ctx.h, StepHistory.empty(ctx.q0, ctx.t),
+                          values)
+
+    def engine(self, ctx: StepContext):
+        """The Jacobian-free iteration's `Engine` where this step takes it, else `None`
+        (decided when the step is traced: `_step.jacobian_free.picard_engine`)."""
+        return picard_engine(self.engine_allowed, self.formulation, ctx)
 
     @staticmethod
     def after_jump(record: SeedRecord, made_jump) -> SeedRecord:
@@ -188,11 +210,15 @@ class Seeder(eqx.Module):
             return record
         return eqx.tree_at(lambda r: r.history.valid, record, record.history.valid & ~made_jump)
 
-    def accept(self, ctx: StepContext, record: SeedRecord, theta, curve, q1) -> SeedRecord:
-        """The record after the step to `q1` along `curve` with parameters `theta`."""
+    def accept(self, ctx: StepContext, record: SeedRecord, theta, curve, q1,
+               node_values=None) -> SeedRecord:
+        """The record after the step to `q1` along `curve` with parameters `theta` (and the
+        node values of its curve, where the step took the Jacobian-free iteration)."""
         # Only Hermite extrapolation reads the previous step's ends; skip the work otherwise.
         history = _history(ctx, curve, q1) if self.uses_history else record.history
-        return SeedRecord(theta, jnp.array(False), ctx.h, history)
+        if record.node_values is None:
+            node_values = None
+        return SeedRecord(theta, jnp.array(False), ctx.h, history, node_values)
 
     @property
     def uses_history(self) -> bool:
@@ -207,6 +233,9 @@ class Seeder(eqx.Module):
     ) -> Seed:
         """The start of the step from `record`; `last_residual` and `last_iterations` are how
         the previous step's solve ended (for the refit guards)."""
+        engine = self.engine(ctx) if record.node_values is not None else None
+        if engine is not None:
+            return self._engine_seed(ctx, record, made_jump, engine)
         cold_inputs = (record.theta, record.fresh, record.history)
         refit_ok = (
             self._refit_allowed(ctx, last_residual, last_iterations)
@@ -243,6 +272,30 @@ class Seeder(eqx.Module):
                                           seed[1])
             return Seed((seed[0], start), warm_used, refitted)
         return Seed(seed, warm_used, refitted, cold_inputs, fit_inputs)
+
+    def _engine_seed(self, ctx: StepContext, record: SeedRecord, made_jump, engine) -> Seed:
+        """The Jacobian-free iteration's start: the node values of the last step continued
+        over this one (`extrapolation`), or those of the curve at rest after a jump of the
+        state. A start only: nothing of it is differentiated."""
+        nodes = np.asarray(self.formulation_nodes(ctx))
+        ratio = ctx.h / record.h_prev
+        forces, offsets = jax.lax.stop_gradient(record.node_values)
+        forces = extrapolation(nodes, ratio, forces)
+        if engine.structure.offset_moves:
+            offsets = extrapolation(nodes, ratio, offsets)
+        fresh = record.fresh
+        if made_jump is not False:
+            rest = start_at_rest(ctx)
+            forces = jnp.where(made_jump, rest[0], forces)
+            offsets = jnp.where(made_jump, rest[1], offsets)
+            fresh = fresh | made_jump
+        return Seed((None, None), ~fresh, jnp.array(False), engine=(engine, (forces, offsets)))
+
+    @staticmethod
+    def formulation_nodes(ctx: StepContext):
+        """The quadrature's nodes as constants (they are when the step is traced)."""
+        with jax.ensure_compile_time_eval():
+            return np.asarray(ctx.nodes, np.float64)
 
     def _carried_layer_seed(self, ctx: StepContext, record: SeedRecord, rule, cold_inputs):
         """A projected step whose hidden layer is carried from step to step (`UniformLayer`,

@@ -136,7 +136,10 @@ class StepSolution(NamedTuple):
     - `forces`: `∂L/∂q` at the nodes of the converged curve where the solve evaluated them
       (for dense output); else `None`;
     - `iterations`, `result` (a diffrax result), `residual` (final `max|F|`), `tolerance`
-      (the residual it had to reach; NaN where the root finder has none), `restarted`.
+      (the residual it had to reach; NaN where the root finder has none), `restarted`;
+    - `node_values`: where the step took the Jacobian-free iteration, the forces and
+      momentum offsets at the nodes of its curve, from which the next step starts; else
+      `None`.
     """
 
     theta: Any
@@ -148,6 +151,7 @@ class StepSolution(NamedTuple):
     residual: Array
     tolerance: Array
     restarted: Array
+    node_values: tuple[Array, Array] | None = None
 
 
 def jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepContext):

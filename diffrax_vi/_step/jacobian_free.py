@@ -1,5 +1,5 @@
-"""The projected step solved without a Jacobian, for a Lagrangian whose kinetic matrix is
-constant.
+"""The projected step's Jacobian-free update, for a Lagrangian whose kinetic matrix is
+constant: what the step offers `JacobianFreeIteration` (`diffrax_vi._root_finder`).
 
 On a span known when the step is traced (`CGVI`, the default network step), the projected
 step's equations are linear in the curve's coordinates but for the node values of two
@@ -11,53 +11,31 @@ node values of the curve are fixed linear maps of them:
     Q = q_n + h (h Q_f F + Q_g G + q_p p_nᵀ) M⁻¹,     V = (h V_f F + V_g G + v_p p_nᵀ) M⁻¹,
 
 with `Q_f, Q_g, V_f, V_g` (`R × R`) and `q_p, v_p` (`R`) computed once, in NumPy, when the
-step is traced. The fixed-point iteration `F, G ← f, g (Q(F, G), V(F, G))` (Picard's, as in
-IRKGL16) then needs one evaluation of the Lagrangian's gradient over all nodes and a few small
-products with constants per update: no Jacobian, no factorisation, nothing that depends on the
-step but `h`. It contracts at a rate of order `(hω)²` for a motion of frequency `ω`.
-
-It runs until the forces stop changing (round-off), then the step's unknowns
-`z = (δc, Δp)` are formed from the last values and the residual of the step's equations is
-evaluated once at `z`, as a check. A solve that does not contract (a stiff problem, a long
-step) is handed to the root finder's own iteration from the same start (`solve_projected`),
-which costs nothing unless some member of a batch needs it.
+step is traced. The start of a step's iteration is those maps applied to the last step's
+node values continued (`extrapolation`, as IRKGL16 starts its stages); its update is
+`z ← z − K⁻¹ (r, c)` with `K` the kinetic part of the equations' Jacobian, constant here
+(`EngineUpdate`). The iteration runs on the step's own equations, not on the node values,
+so that its fixed point is their root as rounded in this step (constant maps rounded once,
+when the step is traced, would put the same error into every step: an energy drift).
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
-import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
 from .._kinetic_structure import KineticStructure, kinetic_structure
 from .._lagrange import continuation_coefficients
-from .._linalg import constant_outer, constant_product, elimination_solve, well_conditioned
+from .._linalg import constant_outer, constant_product, well_conditioned
 
 __all__ = [
-    "PicardPlan", "PicardSolve", "extrapolation", "picard_engine", "picard_plan",
-    "picard_solve", "newton_solve", "start_at_rest",
+    "Engine", "PicardPlan", "end_offsets", "engine_start", "engine_update", "extrapolation",
+    "picard_engine", "picard_plan", "start_at_rest",
 ]
-
-# Updates made first without any test (their changes are not even measured), then updates
-# made without a test in between (they measure the changes that the first test reads), before
-# the loop that tests each one: a step that contracts as most do ends without entering it.
-PLAIN = 0
-UNROLLED = 0
-# Updates at most before the iteration is handed to the root finder's own.
-MAX_UPDATES = 40
-# Stop once the predicted remaining change of the forces is below 1/PREDICT_MARGIN of a
-# rounding unit of them (relative to their largest value).
-PREDICT_MARGIN = 1024
-# A change within NOISE rounding units of the forces is rounding noise: once the changes stop
-# shrinking there, the iteration is at round-off.
-NOISE = 64
-# Consecutive growing updates, above the noise, that end the iteration as not contracting.
-MAX_GROWTH = 2
 
 
 def picard_engine(allowed: bool, formulation, ctx):
@@ -71,7 +49,7 @@ def picard_engine(allowed: bool, formulation, ctx):
     span = formulation.fixed_span(ctx)
     if span is None:
         return None
-    plan = picard_plan(span, ctx.weights)
+    plan = picard_plan(span, ctx.weights, formulation.uniform_span(span))
     if plan is None:
         return None
     structure = kinetic_structure(ctx.term, ctx.t, ctx.q0, ctx.args)
@@ -79,7 +57,7 @@ def picard_engine(allowed: bool, formulation, ctx):
         return None
     if structure.mass is not None and not well_conditioned(structure.mass):
         return None
-    return plan, structure, span
+    return Engine(plan, structure, span)
 
 
 class PicardPlan(NamedTuple):
@@ -94,13 +72,11 @@ class PicardPlan(NamedTuple):
     kinv: np.ndarray
 
 
-def picard_plan(span, weights) -> PicardPlan | None:
+def picard_plan(span, weights, uniform: bool) -> PicardPlan | None:
     """The `PicardPlan` of a span known when the step is traced and the same in every
-    coordinate (`VariableProjection.uniform_span`); `None` where it is not, or where the
+    coordinate (`uniform`: `VariableProjection.uniform_span`); `None` where it is not, or where the
     kinetic block of its equations is singular."""
-    from .projection import VariableProjection
-
-    if isinstance(weights, jax.core.Tracer) or not VariableProjection.uniform_span(span):
+    if isinstance(weights, jax.core.Tracer) or not uniform:
         return None
     gq, gv, g0, gd = (np.asarray(a, np.float64)[0] for a in (span.gq, span.gv, span.g0, span.gd))
     live = np.asarray(span.live)[:, 0]
@@ -128,48 +104,6 @@ def picard_plan(span, weights) -> PicardPlan | None:
     jacobian = block.copy()
     jacobian[k, :k] = -g0
     return PicardPlan(xf=xf, xg=xg, xp=xp, kinv=np.linalg.inv(jacobian))
-
-
-class PicardSolve(NamedTuple):
-    """How the iteration ended: the unknowns `z = (δc, Δp)`, the node values `(F, G)` it
-    ended with (the forces at the nodes of the last curve, and the momentum's offsets), the
-    updates made, the residual's size at the last update, whether it converged, how it
-    failed where it did not (0: a value not finite, 1: the changes grew, 2: too many
-    updates), and the unknowns it started from."""
-
-    unknowns: tuple[Array, Array]
-    values: tuple[Array, Array]
-    iterations: Array
-    residual: Array
-    converged: Array
-    failure: Array
-    start: tuple[Array, Array]
-
-    def result(self):
-        """The step's `RESULTS`: successful where it converged, else what ended it."""
-        from .._results import STEP_FAILURES
-
-        where = diffrax.RESULTS.where
-        ended = where(self.failure == 1, STEP_FAILURES["vi_step_stalled"],
-                      STEP_FAILURES["vi_step_max_iterations"])
-        ended = where(self.failure == 0, STEP_FAILURES["vi_step_nonfinite"], ended)
-        return where(self.converged, diffrax.RESULTS.successful, ended)
-
-
-class _Carry(NamedTuple):
-    """The iteration's state, packed so that an update writes three arrays (each array a
-    loop carries is at least one kernel of its own per update, scalars included): the
-    unknowns `x = [δc; Δp]` (`(k + 1) × D`), the forces `f` at the nodes, and `stats`, the
-    scalars of the stopping rules in the order of `_STATS`, stored in the unknowns' dtype
-    (counts and flags are small integers, exact in any float)."""
-
-    x: Array
-    f: Array
-    stats: Array
-
-
-_STATS = ("change", "rate", "residual", "growth", "updates", "converged", "done")
-_CHANGE, _RATE, _RESIDUAL, _GROWTH, _UPDATES, _CONVERGED, _DONE = range(len(_STATS))
 
 
 class _Kinetic(NamedTuple):
@@ -203,7 +137,7 @@ def _momenta_and_forces(ctx, q, v):
     )
 
 
-def start_at_rest(structure: KineticStructure, ctx) -> tuple[Array, Array]:
+def start_at_rest(ctx) -> tuple[Array, Array]:
     """The start of a step with nothing to continue: the forces of the constant curve `q_n`
     at every node (and its momentum offsets)."""
     r = ctx.nodes.shape[0]
@@ -246,160 +180,60 @@ def extrapolation(nodes: np.ndarray, ratio: Array, values: Array) -> Array:
     return apply(*jax.lax.stop_gradient((jnp.asarray(ratio, values.dtype), values)))
 
 
-def picard_solve(plan: PicardPlan, structure: KineticStructure, ctx, span,
-                 start: tuple[Array, Array], residual) -> PicardSolve:
-    """Solve the step's equations `residual(z) -> ((r, c), f)` (the projected step's reduced
-    residual, and the forces at the nodes) by the iteration `z ← z − K⁻¹ (r, c)`, with `K`
-    the kinetic part of their Jacobian (constant here), from the unknowns that the node
-    values `start = (F, G)` give.
+class Engine(NamedTuple):
+    """What the Jacobian-free iteration of one step is built from (`picard_engine`)."""
 
-    The iteration is Picard's for the node values: with `K` the whole Jacobian but for the
-    forces' and offsets' derivatives, one update moves the curve to where the forces of the
-    last curve put it. It is run on the step's own equations, not on the node values, so
-    that its fixed point is their root as rounded in this step (constant maps rounded once,
-    when the step is traced, would put the same error into every step: an energy drift)."""
+    plan: PicardPlan
+    structure: KineticStructure
+    span: object
+
+
+def engine_start(engine: Engine, ctx, values: tuple[Array, Array]) -> tuple[Array, Array]:
+    """The unknowns `z = (δc, Δp)` that the node values `values = (F, G)` give (the curve
+    those forces and offsets put the step on)."""
+    plan, structure, span = engine
     dtype = ctx.q0.dtype
-    h, p0 = ctx.h, ctx.p0
-    kinetic = _kinetic(structure, ctx)
+    f0, g0 = (a.astype(dtype) for a in values)
+    x = (ctx.h * constant_product(plan.xf, f0) + constant_product(plan.xg, g0)
+         + constant_outer(plan.xp, ctx.p0))
     k = plan.xf.shape[0] - 1
-    live = span.live
+    kinetic = _kinetic(structure, ctx)
+    return (jnp.where(span.live, ctx.h * kinetic.times_minv(x[:k]), 0).astype(dtype),
+            x[k].astype(dtype))
 
-    f0, g0 = (a.astype(dtype) for a in start)
-    x = (h * constant_product(plan.xf, f0) + constant_product(plan.xg, g0)
-         + constant_outer(plan.xp, p0))
-    z0 = (jnp.where(live, h * kinetic.times_minv(x[:k]), 0).astype(dtype), x[k].astype(dtype))
 
-    def correction(z, r, cont):
+def engine_update(engine: Engine):
+    """`(z, (r, c), args) ↦ −K⁻¹ (r, c)` for the projected step's equations on a span known
+    when the step is traced (the hint `update`): `K` is the kinetic part of their Jacobian,
+    constant here; the step's context comes in as `args[0]`. A closure over NumPy
+    constants, so that they stay constants of the compiled step."""
+    kinv, structure = engine.plan.kinv, engine.structure
+    live = np.asarray(engine.span.live)
+    k = kinv.shape[0] - 1
+
+    def update(z, residual, args):
+        del z
+        ctx = args[0]
+        r, cont = residual
+        kinetic = _kinetic(structure, ctx)
+        h = ctx.h
         rows = jnp.concatenate([jnp.where(live, r, 0), kinetic.times_mass(cont[None]) / h])
-        dx = -constant_product(plan.kinv, rows)
+        dx = -constant_product(kinv, rows)
         return jnp.where(live, h * kinetic.times_minv(dx[:k]), 0), dx[k]
 
-    end = _iterate(z0, f0, residual, correction, UNROLLED, PLAIN)
-    return _solved(structure, ctx, span, kinetic, end, g0, z0)
+    return update
 
 
-def newton_solve(structure: KineticStructure, ctx, span, start: PicardSolve,
-                residual, differentiable) -> PicardSolve:
-    """The same equations by Newton's iteration, `z ← z − J(z)⁻¹ (r, c)` with the whole
-    Jacobian `J` (forward derivatives of `differentiable`, the same equations written so that
-    they have derivatives: `fused=False`), from the Jacobian-free
-    iteration's start: for a step that iteration does not contract on (a stiff force at a
-    long step). It stops by the same rules, and fails where it does not converge either."""
-    z0 = start.start
-    f0, g0 = start.values
-    _, unravel = ravel_pytree(z0)
-
-    def flat_residual(x):
-        return ravel_pytree(differentiable(unravel(x))[0])[0]
-
-    def correction(z, r, cont):
-        rhs = ravel_pytree((r, cont))[0]
-        jacobian = _columnwise_jacobian(flat_residual, ravel_pytree(z)[0])
-        return unravel(-elimination_solve(jacobian, rhs))
-
-    end = _iterate(z0, f0, residual, correction, 0)
-    solved = _solved(structure, ctx, span, None, end, g0, z0)
-    return solved._replace(iterations=solved.iterations + start.iterations)
-
-
-def _columnwise_jacobian(fn, x: Array) -> Array:
-    """`∂fn/∂x` one column per pass of a loop (a forward derivative along each axis).
-    `jax.jacfwd` would batch the derivatives, and XLA's CPU backend compiles the batched
-    products of a span of more than a few directions as calls of its dot library, which keep
-    the solve's loop from being compiled whole (`linalg.elimination_solve`)."""
-    n = x.shape[0]
-    out = jax.eval_shape(fn, x)
-
-    def column(i, jacobian):
-        _, derivative = jax.jvp(fn, (x,), ((jnp.arange(n) == i).astype(x.dtype),))
-        return jax.lax.dynamic_update_slice(jacobian, derivative[:, None], (0, i))
-
-    return jax.lax.fori_loop(0, n, column, jnp.zeros((out.shape[0], n), out.dtype))
-
-
-def _iterate(z0, f0, residual, correction, unrolled: int, plain: int = 0) -> _Carry:
-    """`z ← z + correction(z, r, c)` from `z0` until the change is at round-off (predicted or
-    seen), growing, not finite, or `MAX_UPDATES` were made; the first `plain` updates measure
-    nothing, the next `unrolled` have no test in between."""
-    dtype = z0[1].dtype
-    eps = float(jnp.finfo(dtype).eps)
-    tiny = float(jnp.finfo(dtype).tiny)
-    k = z0[0].shape[0]
-
-    def split(x):
-        return x[:k], x[k]
-
-    def update(c: _Carry) -> _Carry:
-        z = split(c.x)
-        (r, cont), f = residual(z)
-        dc, dp = correction(z, r, cont)
-        dx = jnp.concatenate([dc, dp[None]])
-        x = c.x + dx
-        # the three sizes the tests need, in one kernel
-        delta, size, fsize = _max_abs(jnp.stack([dx, x, jnp.concatenate([r, cont[None]])]))
-        last = c.stats
-        change = delta / jnp.maximum(size, tiny)
-        known = jnp.isfinite(last[_CHANGE]) & (last[_CHANGE] > 0)
-        rate = change / jnp.where(known, last[_CHANGE], 1)
-        # the worse of the last two rates: the error has several modes, and a ratio taken as
-        # a fast one dies out understates the slow one's (stopping one update early leaves an
-        # error of the same sign on every step, an energy drift)
-        worst = jnp.maximum(rate, last[_RATE])
-        predicted = known & (worst < 1) & (change * worst <= (1 - worst) * eps / PREDICT_MARGIN)
-        at_noise = (change <= NOISE * eps) & (change >= 0.5 * last[_CHANGE])
-        finite = jnp.isfinite(change)
-        converged = ((change == 0) | predicted | at_noise) & finite
-        growing = (change > NOISE * eps) & (change >= last[_CHANGE])
-        growth = jnp.where(growing, last[_GROWTH] + 1, 0)
-        updates = last[_UPDATES] + 1
-        done = converged | ~finite | (growth > MAX_GROWTH) | (updates >= MAX_UPDATES)
-        # one array, so that the scalars are one fused kernel rather than one each
-        stats = jnp.stack([change, jnp.where(known, rate, jnp.inf), fsize, growth, updates,
-                           converged, done]).astype(dtype)
-        return _Carry(x, f, stats)
-
-    z, f = z0, f0
-    for _ in range(plain):
-        (r, cont), f = residual(z)
-        dc, dp = correction(z, r, cont)
-        z = (z[0] + dc, z[1] + dp)
-    stats = np.zeros(len(_STATS))
-    stats[[_CHANGE, _RATE, _RESIDUAL]] = np.inf
-    stats[_UPDATES] = plain
-    carry = _Carry(jnp.concatenate([z[0], z[1][None]]), f, jnp.asarray(stats, dtype))
-    for _ in range(unrolled):
-        carry = update(carry)
-    return jax.lax.while_loop(lambda c: c.stats[_DONE] == 0, update, carry)
-
-
-def _max_abs(x: Array) -> Array:
-    """`max |x|` over all axes but the first, by halving elementwise maxima: a reduction of
-    these sizes costs far more as a reduction kernel (alone and under `vmap`) than as a
-    few fused elementwise operations."""
-    a = jnp.abs(x.reshape(x.shape[0], -1))
-    while a.shape[1] > 1:
-        half = a.shape[1] // 2
-        top = jnp.maximum(a[:, :half], a[:, half:2 * half])
-        a = top if a.shape[1] % 2 == 0 else jnp.concatenate([top, a[:, 2 * half:]], axis=1)
-    return a[:, 0]
-
-
-def _solved(structure, ctx, span, kinetic: _Kinetic | None, end: _Carry, g0, z0
-            ) -> PicardSolve:
-    dtype = ctx.q0.dtype
-    k = z0[0].shape[0]
-    z = (end.x[:k], end.x[k])
-    stats = end.stats
-    g = g0
-    if structure.offset_moves:  # the offsets of the last curve, for the next step's start
-        kinetic = kinetic or _kinetic(structure, ctx)
-        q, dq = _curve_at_nodes(span, z[0], ctx.q0)
-        p, _ = _momenta_and_forces(ctx, q, dq / ctx.h)
-        g = p - kinetic.times_mass(dq / ctx.h)
-    change = stats[_CHANGE]
-    failure = jnp.where(jnp.isfinite(change), jnp.where(stats[_GROWTH] > MAX_GROWTH, 1, 2), 0)
-    return PicardSolve(z, (end.f, g), stats[_UPDATES].astype(jnp.int32),
-                       stats[_RESIDUAL].astype(dtype), stats[_CONVERGED] != 0, failure, z0)
+def end_offsets(engine: Engine, ctx, z, offsets: Array) -> Array:
+    """The momentum's offsets at the nodes of the curve `z` where they move (else the given
+    `offsets`, which are constant), for the next step's start."""
+    _, structure, span = engine
+    if not structure.offset_moves:
+        return offsets
+    kinetic = _kinetic(structure, ctx)
+    q, dq = _curve_at_nodes(span, z[0], ctx.q0)
+    p, _ = _momenta_and_forces(ctx, q, dq / ctx.h)
+    return p - kinetic.times_mass(dq / ctx.h)
 
 
 def _curve_at_nodes(span, dc, q0):

@@ -186,7 +186,8 @@ class VariableProjection(FreeEndpoints):
         """The step's equations on the span of the seed's hidden layer, in increments
         (`diffrax_vi._step.projected_solve`)."""
         hidden, start = seed.start
-        return solve_projected(self, ctx, options, hidden, start, seed.restart_history)
+        return solve_projected(self, ctx, options, hidden, start, seed.restart_history,
+                               seed.engine)
 
     def roots_may_drift(self, basis: AbstractBasis) -> bool:
         del basis
