@@ -309,3 +309,13 @@ def test_picard_must_be_a_bool():
         ChordIteration(picard="yes")
     with pytest.raises(TypeError, match="restart must be True or False"):
         dvi.RoundoffNewton(restart=1)
+
+
+def test_the_iteration_refuses_a_step_without_its_update():
+    # Given alone to a step that offers no constant-matrix update, it says what is missing.
+    def residual(z, args):
+        return z, None
+
+    with pytest.raises(ValueError, match="needs the hint `update`"):
+        one_step_solve(JacobianFreeIteration(), residual, (jnp.ones((2, 1)), jnp.ones(1)), None,
+                       step_options(StepHints(max_iterations=10)))

@@ -59,7 +59,13 @@ def solve_projected(form, ctx: StepContext, options: SolveOptions, hidden, start
 
         restart = (FIRST_TRY, restart_start)
     sol = projected_root_find(form, options, ctx, span, z0, cap, restart, restart_history)
-    z, f = sol.value, sol.state.f
+    return _solution(form, options, ctx, span, sol, options.root_finder)
+
+
+def _solution(form, options: SolveOptions, ctx: StepContext, span, sol, root_finder
+              ) -> StepSolution:
+    """The step's solution from `projected_root_find`'s by `root_finder`."""
+    z = sol.value
     dtype = ctx.q0.dtype
     eps = float(jnp.finfo(dtype).eps)
     return StepSolution(
@@ -69,9 +75,9 @@ def solve_projected(form, ctx: StepContext, options: SolveOptions, hidden, start
         forces=jax.lax.stop_gradient(sol.aux).astype(ctx.p0.dtype),
         iterations=jnp.asarray(sol.stats["num_steps"], jnp.int32),
         result=from_root_find(sol.result),
-        residual=jax.lax.stop_gradient(jnp.max(jnp.abs(f)).astype(dtype)),
+        residual=jax.lax.stop_gradient(jnp.max(jnp.abs(sol.state.f)).astype(dtype)),
         tolerance=(options.root_finder.ftol * eps * residual_scale(ctx)).astype(dtype),
-        restarted=jnp.asarray(traits_of(options.root_finder).was_restarted(sol.state)),
+        restarted=jnp.asarray(traits_of(root_finder).was_restarted(sol.state)),
     )
 
 
@@ -87,23 +93,9 @@ def _solve_by_engine(form, ctx: StepContext, options: SolveOptions, engine, valu
     iteration = JacobianFreeIteration(newton_fallback=fallback)
     sol = projected_root_find(form, options, ctx, span, z0, options.max_steps,
                               engine_update=engine_update(engine), root_finder=iteration)
-    z = sol.value
-    forces = jax.lax.stop_gradient(sol.aux).astype(ctx.p0.dtype)
-    offsets = jax.lax.stop_gradient(end_offsets(engine, ctx, z, values[1]))
-    dtype = ctx.q0.dtype
-    eps = float(jnp.finfo(dtype).eps)
-    return StepSolution(
-        theta=form.expand(form.coefficients(z[0], ctx), span),
-        increments=form.projected_increments(z, span, ctx),
-        end=None,
-        forces=forces,
-        iterations=jnp.asarray(sol.state.iterations, jnp.int32),
-        result=from_root_find(sol.result),
-        residual=jax.lax.stop_gradient(jnp.max(jnp.abs(sol.state.f)).astype(dtype)),
-        tolerance=(options.root_finder.ftol * eps * residual_scale(ctx)).astype(dtype),
-        restarted=sol.state.restarted,
-        node_values=(forces, offsets.astype(ctx.p0.dtype)),
-    )
+    solved = _solution(form, options, ctx, span, sol, iteration)
+    offsets = jax.lax.stop_gradient(end_offsets(engine, ctx, sol.value, values[1]))
+    return solved._replace(node_values=(solved.forces, offsets.astype(ctx.p0.dtype)))
 
 
 def projected_root_find(form, options: SolveOptions, ctx: StepContext, span, z0,
