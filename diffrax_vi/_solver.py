@@ -22,7 +22,7 @@ from ._quadrature import AbstractQuadrature, GaussLegendre
 from ._results import JUMP_TOLERANCE, STEP_FAILURES, StepReport
 from ._root_finder.damped_newton import LevenbergMarquardt
 from ._root_finder.newton import RoundoffNewton
-from ._seeding.policy import Seed, Seeder, SeedPolicy
+from ._seeding.policy import Seeder, SeedPolicy
 from ._solver_options import check_options
 from ._solver_state import NetworkVIState
 from ._step.companion import companion_error, estimate_order
@@ -42,13 +42,7 @@ from ._step.formulation import (
     residual_scale,
     stage_values,
 )
-from ._step.holonomic import (
-    PreviousStep,
-    check_constrained_solver,
-    constrained_step,
-    curve_and_forces,
-    no_previous_step,
-)
+from ._step.holonomic import ConstrainedGalerkin, check_constrained_solver
 from ._step.kinetic_check import kinetic_matrix_regular
 from ._step.projection import VariableProjection
 from ._terms import AbstractMechanicalTerm, unwrap_term
@@ -181,11 +175,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 warn_all_parameter_fallback(self.basis)
         return FreeEndpoints()
 
+    def solve_options_for(self, seeder: Seeder) -> SolveOptions:
+        """What a formulation's solve of a step reads of this solver, with `seeder`."""
+        return SolveOptions(self.root_finder, self.root_find_max_steps, self.adjoint, seeder)
+
     @property
     def solve_options(self) -> SolveOptions:
-        """What the formulation's solve of a step reads of this solver."""
-        return SolveOptions(self.root_finder, self.root_find_max_steps, self.adjoint,
-                            self.seeder)
+        """What `formulation`'s solve of a step reads of this solver."""
+        return self.solve_options_for(self.seeder)
 
     @property
     def interpolation_cls(self):  # type: ignore[override]
@@ -214,10 +211,19 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         basis = self.basis.at_step(t, h)
         return StepContext(term, basis, t, h, q0, p0, args, nodes, weights)
 
+    def formulation_for(self, term) -> AbstractFormulation:
+        """The formulation of this term's steps (decided when the step is traced): the
+        constrained Galerkin step where it has holonomic constraints, else `formulation`."""
+        return ConstrainedGalerkin() if term.has_constraints else self.formulation
+
+    def seeder_for(self, formulation: AbstractFormulation) -> Seeder:
+        """The seed policy bound to this solver's ansatz and root finder and `formulation`."""
+        return self.seed.bind(self.basis, formulation, self.root_finder)
+
     @property
     def seeder(self) -> Seeder:
         """The seed policy bound to this solver's ansatz, formulation and root finder."""
-        return self.seed.bind(self.basis, self.formulation, self.root_finder)
+        return self.seeder_for(self.formulation)
 
     # -- diffrax.AbstractSolver interface -----------------------------------------------------
     def init(self, terms, t0, t1, y0, args) -> NetworkVIState:
@@ -230,10 +236,10 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         ctx = self.step_context(terms, t0, t1, y0, args)
         from ._step.kinetic_check import refuse_degenerate_start  # a start no step can solve
         ctx = refuse_degenerate_start(ctx)  # its `t` reaches `report.t`, as the times' check
-        seed = self.seeder.first_record(ctx)
-        zero = jnp.array(0, jnp.int32)
         if ctx.term.has_constraints:
             check_constrained_solver(self.basis, self.error_estimate)
+        seed = self.seeder_for(self.formulation_for(ctx.term)).first_record(ctx)
+        zero = jnp.array(0, jnp.int32)
         return NetworkVIState(
             seed=seed,
             iterations=zero,
@@ -258,10 +264,6 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             first_constraint=jnp.full((), jnp.nan, ctx.q0.dtype),
             compensation=(jnp.zeros_like(ctx.q0), jnp.zeros_like(ctx.p0)),
             holonomic_drift=jnp.zeros(2, ctx.q0.dtype),
-            holonomic_previous=(
-                no_previous_step(ctx.term, self.basis.degree, ctx.t, ctx.q0, ctx.args)
-                if ctx.term.has_constraints else None
-            ),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: NetworkVIState, made_jump):
@@ -280,58 +282,26 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         """Seed -> solve -> accept."""
         ctx = self.step_context(terms, t0, t1, y0, args)
         state = solver_state
-        if ctx.term.has_constraints:
-            return self._constrained_step(ctx, state, made_jump)
-        seeding = self.seeder
+        formulation = self.formulation_for(ctx.term)
+        seeding = self.seeder_for(formulation)
         record = seeding.after_jump(state.seed, made_jump)
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
-        solved = self.formulation.solve_step(ctx, seed, self.solve_options)
+        solved = formulation.solve_step(ctx, seed, self.solve_options_for(seeding))
         if solved.increments is not None:  # added here, compensated
-            q1, p1, compensation, violation = self._end_state(ctx, state, *solved.increments,
-                                                              True)
+            q1, p1, compensation, violation = self._end_state(ctx, state, *solved.increments)
         else:
             (q1, p1), compensation, violation = solved.end, state.compensation, None
         q1, p1 = q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype)
         if violation is None and not kinetic_matrix_regular(ctx):
             _, violation = end_on_constraint(ctx, q1, p1, correct=False)
-        return self._finish_step(
-            ctx, state, record, seed, solved.theta, q1, p1, solved.iterations, solved.result,
-            solved.residual, solved.tolerance, solved.restarted, compensation, violation,
-            solved.forces, solved.node_values,
-        )
+        return self._finish_step(ctx, state, seeding, record, seed, solved, q1, p1,
+                                 compensation, violation)
 
-    def _constrained_step(self, ctx, state, made_jump):
-        """The step of a term with holonomic constraints: the constrained Galerkin step of
-        the basis's degree with multipliers (`diffrax_vi._step.holonomic`)."""
-        previous = state.holonomic_previous
-        if made_jump is not False:  # after a jump of the state, from the straight line again
-            previous = previous._replace(valid=previous.valid & ~made_jump)
-        solved = constrained_step(ctx.term, self.basis.degree, ctx.t, ctx.h, ctx.q0, ctx.p0,
-                                  ctx.args, self.root_find_max_steps, previous)
-        theta, forces = curve_and_forces(solved, self.basis, ctx)
-        q1, p1, compensation, _ = self._end_state(ctx, state, solved.dq, solved.dp, False)
-        record = self.seeder.after_jump(state.seed, made_jump)
-        no, dtype = jnp.array(False), ctx.q0.dtype
-        (q1, p1), y_error, dense_info, new_state, result = self._finish_step(
-            ctx, state, record, Seed(None, no, no), theta, q1, p1, solved.iterations,
-            solved.result, solved.residual.astype(dtype), solved.tolerance.astype(dtype), no,
-            compensation, None, forces,
-        )
-        drift = jnp.maximum(state.holonomic_drift, solved.drift.astype(dtype))
-        ok = result == diffrax.RESULTS.successful
-        last = PreviousStep(solved.values, solved.impulses, ctx.h, ok)
-        # The seed policy's record is never read by the constrained step: it stays as it
-        # was, so that its bookkeeping is not compiled (issue 65).
-        new_state = eqx.tree_at(
-            lambda s: (s.holonomic_drift, s.holonomic_previous, s.seed), new_state,
-            (drift, jax.lax.stop_gradient(last), state.seed))
-        return (q1, p1), y_error, dense_info, new_state, result
-
-    def _end_state(self, ctx, state, dq, dp, on_constraint: bool):
+    def _end_state(self, ctx, state, dq, dp):
         """`(q1, p1, compensation, violation)`: the step's start plus its increments
-        (compensated where `NetworkVI.compensated`); where `on_constraint`, a first-order
-        Lagrangian's end state is moved onto its primary constraint (no change for any
-        other; a moved coordinate carries no compensation), else its violation is zero."""
+        (compensated where `NetworkVI.compensated`); a first-order Lagrangian's end state is
+        moved onto its primary constraint (no change for any other; a moved coordinate
+        carries no compensation)."""
         if self.compensated:
             (q1, eq), (p1, ep) = (
                 compensated_add(x, d, e)
@@ -341,13 +311,11 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         else:
             q1, p1 = ctx.q0 + dq.astype(ctx.q0.dtype), ctx.p0 + dp.astype(ctx.p0.dtype)
             compensation = state.compensation
-        if not on_constraint:
-            return q1, p1, compensation, None
         moved, violation = end_on_constraint(ctx, q1, p1)
         compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
         return moved, p1, compensation, violation
 
-    def _step_result(self, ctx, state, q1, p1, result, violation):
+    def _step_result(self, ctx, state, formulation, q1, p1, result, violation):
         """`(finite, result, constraint, first, jump)`: whether the end state is finite, the
         step's result with the failures that only the end state shows (not finite, an invalid
         step, drift off the primary constraint, an energy jump), the constraint distance
@@ -378,7 +346,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         drift = (constraint > float(jnp.finfo(ctx.q0.dtype).eps) ** CONSTRAINT_TOLERANCE) & (
             constraint > CONSTRAINT_GROWTH * first
         )
-        drift = drift & self.formulation.roots_may_drift(self.basis)
+        drift = drift & formulation.roots_may_drift(self.basis)
         result = diffrax.RESULTS.where(
             drift & (result == diffrax.RESULTS.successful),
             STEP_FAILURES["vi_constraint_drift"],
@@ -400,17 +368,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             )
         return result, jump
 
-    def _finish_step(
-        self, ctx, state, record, seed, theta, q1, p1, n, result, residual, tolerance, restarted,
-        compensation, violation, forces=None, node_values=None,
-    ):
+    def _finish_step(self, ctx, state, seeding, record, seed, solved, q1, p1, compensation,
+                     violation):
         """Failure results, dense output, the new solver state (the seed policy's record
-        accepts the step). `violation` is the end state's distance from the primary
-        constraint (`end_on_constraint`); `forces`, the forces at the nodes of the converged
-        curve where the solve has them (else they are evaluated here); `node_values`, those
-        the Jacobian-free iteration starts the next step from, where it took this one."""
-        finite, result, constraint, first, jump = self._step_result(ctx, state, q1, p1,
-                                                                     result, violation)
+        accepts the step) of the step `solved` that ends at `(q1, p1)`. `violation` is the
+        end state's distance from the primary constraint (`end_on_constraint`)."""
+        formulation, theta, n = seeding.formulation, solved.theta, solved.iterations
+        finite, result, constraint, first, jump = self._step_result(
+            ctx, state, formulation, q1, p1, solved.result, violation)
         # A failed step's end state is never passed off as data: the steps before it stay,
         # this one is NaN (with `throw=False`), and `report` says where and why it failed.
         failed = result != diffrax.RESULTS.successful
@@ -423,8 +388,9 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         p1 = p1 * poison
 
         def curve(tau):
-            return self.formulation.position(ctx.basis, theta, ctx.q0, q1, tau)
+            return formulation.position(ctx.basis, theta, ctx.q0, q1, tau)
 
+        forces = solved.forces
         if forces is None:
             q_nodes, dq_nodes = stage_values(curve, ctx.nodes)
             _, forces = node_momenta_and_forces(ctx, q_nodes, dq_nodes)
@@ -444,7 +410,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
                 lambda a: jnp.where(failed, jnp.asarray(jnp.nan, a.dtype), a), dense_info[key]
             )
         new_state = NetworkVIState(
-            seed=self.seeder.accept(ctx, record, theta, curve, q1, node_values),
+            seed=seeding.accept(ctx, record, theta, curve, q1, solved.node_values),
             iterations=state.iterations + n,
             last_iterations=n,
             max_iterations=jnp.maximum(state.max_iterations, n),
@@ -452,7 +418,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             histogram=state.histogram.at[jnp.minimum(n, self.root_find_max_steps)].add(1),
             warm_starts=state.warm_starts + seed.warm.astype(jnp.int32),
             refits=state.refits + seed.refitted.astype(jnp.int32),
-            restarts=state.restarts + restarted.astype(jnp.int32),
+            restarts=state.restarts + solved.restarted.astype(jnp.int32),
             iteration_log=(
                 state.iteration_log.at[state.steps].set(n, mode="drop")
                 if self.iteration_log
@@ -461,8 +427,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             report=StepReport(
                 t=ctx.t,
                 h=ctx.h,
-                residual=residual,
-                tolerance=tolerance,
+                residual=solved.residual,
+                tolerance=solved.tolerance,
                 iterations=n,
                 result=result,
                 constraint=constraint,
@@ -472,14 +438,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             compensation=jax.tree_util.tree_map(
                 lambda e: jnp.where(failed, jnp.zeros_like(e), e), compensation
             ),
-            holonomic_drift=state.holonomic_drift,
-            holonomic_previous=state.holonomic_previous,
+            holonomic_drift=(state.holonomic_drift if solved.drift is None
+                             else jnp.maximum(state.holonomic_drift, solved.drift)),
         )
         y_error = None
         if self.error_estimate is not None:
             ok = (result == diffrax.RESULTS.successful) & finite
-            y_error = companion_error(self.error_estimate, self.solve_options, ctx, curve, q1,
-                                      p1, ok)
+            y_error = companion_error(self.error_estimate, self.solve_options_for(seeding), ctx,
+                                      curve, q1, p1, ok)
         return (q1, p1), y_error, dense_info, new_state, result
 
     def func(self, terms, t0, y0, args):

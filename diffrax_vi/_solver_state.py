@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 import equinox as eqx
 from jaxtyping import Array, PyTree
 
@@ -47,13 +45,13 @@ class NetworkVIState(eqx.Module):
       state is `y + compensation` to about twice the working precision. Zeros when off.
     - `node_values` (read off `seed`): `(F, G)`, each `(R, D)`: the forces and the
       momentum's offsets at the nodes of the last accepted step, from which the
-      Jacobian-free iteration starts the next; `None` where that iteration is not used.
+      Jacobian-free iteration starts the next; for a term with holonomic constraints, the
+      last step's values and impulses at its Lobatto points
+      (`diffrax_vi._step.holonomic.PreviousStep`), from which the next constrained step
+      starts; `None` where neither is used.
     - `holonomic_drift`: `(2,)`, for a term with holonomic constraints the largest
       `|g(t, q)|` and `|G(q) v + ∂g/∂t|` at the ends of the steps so far (position and
       velocity level); zeros without constraints.
-    - `holonomic_previous`: for a term with holonomic constraints, the last step's curve and
-      impulses (`diffrax_vi._step.holonomic.PreviousStep`), from which the next step's solve
-      starts; `None` without constraints.
     """
 
     seed: SeedRecord
@@ -70,7 +68,6 @@ class NetworkVIState(eqx.Module):
     first_constraint: Array
     compensation: tuple[Array, Array]
     holonomic_drift: Array
-    holonomic_previous: Any
 
     @property
     def theta(self) -> PyTree:

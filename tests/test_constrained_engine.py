@@ -20,7 +20,7 @@ def _state_after(problem, degree, h, t1):
     sol = diffrax.diffeqsolve(problem.term, dvi.CGVI(degree), 0.0, t1, h, problem.y0,
                               saveat=diffrax.SaveAt(t1=True, solver_state=True),
                               max_steps=int(round(t1 / h)) + 4)
-    return sol.ys[0][-1], sol.ys[1][-1], sol.solver_state.holonomic_previous
+    return sol.ys[0][-1], sol.ys[1][-1], sol.solver_state.node_values
 
 
 @pytest.mark.parametrize("degree, h, links", [(2, 0.05, 5), (4, 0.1, 5), (4, 0.025, 20)])

@@ -128,15 +128,15 @@ class SeedRecord(eqx.Module):
     - `history`: the previous step's ends (`StepHistory`), for `HermiteExtrapolation`.
     - `node_values`: where the step takes the Jacobian-free iteration, `(F, G)`, each
       `(R, D)`: the forces and the momentum's offsets at the nodes of the last step's curve
-      (before the first step, of the curve at rest), from which the next step starts;
-      else `None`.
+      (before the first step, of the curve at rest), from which the next step starts; for
+      a formulation that continues itself, what its last solve left; else `None`.
     """
 
     theta: PyTree
     fresh: Array
     h_prev: Array
     history: StepHistory
-    node_values: tuple[Array, Array] | None = None
+    node_values: Any = None
 
 
 class Seed(NamedTuple):
@@ -194,7 +194,10 @@ class Seeder(eqx.Module):
         """The record before the first step, which seeds itself (`fresh`): computing its seed
         here would put a second copy of the seed fit into the compiled program."""
         theta = ctx.basis.zeros(ctx.q0.shape[0], ctx.q0.dtype)
-        values = start_at_rest(ctx) if self.engine(ctx) is not None else None
+        if self.formulation.continues_itself:
+            values = self.formulation.first_start(ctx)
+        else:
+            values = start_at_rest(ctx) if self.engine(ctx) is not None else None
         return SeedRecord(theta, jnp.array(True), ctx.h, StepHistory.empty(ctx.q0, ctx.t),
                           values)
 
@@ -214,6 +217,8 @@ class Seeder(eqx.Module):
                node_values=None) -> SeedRecord:
         """The record after the step to `q1` along `curve` with parameters `theta` (and the
         node values of its curve, where the step took the Jacobian-free iteration)."""
+        if self.formulation.continues_itself:  # nothing else of the record is read
+            return eqx.tree_at(lambda r: r.node_values, record, node_values)
         # Only Hermite extrapolation reads the previous step's ends; skip the work otherwise.
         history = _history(ctx, curve, q1) if self.uses_history else record.history
         if record.node_values is None:
@@ -233,6 +238,11 @@ class Seeder(eqx.Module):
     ) -> Seed:
         """The start of the step from `record`; `last_residual` and `last_iterations` are how
         the previous step's solve ended (for the refit guards)."""
+        if self.formulation.continues_itself:  # its last solve, unless the state jumped
+            carried = record.node_values
+            if made_jump is not False:
+                carried = carried._replace(valid=carried.valid & ~made_jump)
+            return Seed(carried, jnp.array(False), jnp.array(False))
         engine = self.engine(ctx) if record.node_values is not None else None
         if engine is not None:
             return self._engine_seed(ctx, record, made_jump, engine)

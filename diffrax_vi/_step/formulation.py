@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -137,9 +137,12 @@ class StepSolution(NamedTuple):
       (for dense output); else `None`;
     - `iterations`, `result` (a diffrax result), `residual` (final `max|F|`), `tolerance`
       (the residual it had to reach; NaN where the root finder has none), `restarted`;
-    - `node_values`: where the step took the Jacobian-free iteration, the forces and
-      momentum offsets at the nodes of its curve, from which the next step starts; else
-      `None`.
+    - `node_values`: what the next step starts from, where the step's solve carries it: the
+      forces and momentum offsets at the nodes of its curve where it took the Jacobian-free
+      iteration, the constrained step's values and impulses (`holonomic.PreviousStep`);
+      else `None`;
+    - `drift`: where the term has holonomic constraints, `(max |g|, max |G v + ∂g/∂t|)` at
+      the step's end; else `None`.
     """
 
     theta: Any
@@ -151,7 +154,8 @@ class StepSolution(NamedTuple):
     residual: Array
     tolerance: Array
     restarted: Array
-    node_values: tuple[Array, Array] | None = None
+    node_values: Any = None
+    drift: Array | None = None
 
 
 def jacobian_option(root_finder, formulation: AbstractFormulation, ctx: StepContext):
@@ -174,7 +178,18 @@ class AbstractFormulation(eqx.Module):
     The unknowns are a pair `(θ, e)`: the ansatz parameters and one endpoint quantity
     (`p_{n+1}` for free endpoints, `q_{n+1}` for interpolating ones). `solve_step` solves
     them for one step.
+
+    A formulation that `continues_itself` starts each step from what its last solve left
+    (`StepSolution.node_values`, `first_start` before the first step) rather than from the
+    seed policy's trajectory seed.
     """
+
+    continues_itself: ClassVar[bool] = False
+
+    def first_start(self, ctx: StepContext):
+        """What the first step starts from, where the formulation `continues_itself`."""
+        del ctx
+        return None
 
     def solve_step(self, ctx: StepContext, seed, options: SolveOptions) -> StepSolution:
         """The step's equations in all the ansatz parameters (the reference's solve), from

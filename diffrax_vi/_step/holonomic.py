@@ -23,7 +23,7 @@ Lubich & Wanner, *Geometric Numerical Integration*, VII.1), the order of `CGVI(s
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -38,12 +38,18 @@ from .._linalg import dense_tangent_solve, solve, unpivoted_inverse
 from .._precision import lapack_dtype
 from .._results import STEP_FAILURES
 from .constrained_engine import constant_kinetic, split_solve
-from .formulation import StepContext, node_momenta_and_forces, stage_values
+from .formulation import (
+    AbstractFormulation,
+    StepContext,
+    StepSolution,
+    node_momenta_and_forces,
+    stage_values,
+)
 from .lobatto import lobatto_arrays, lobatto_rule
 
 __all__ = [
-    "ConstrainedStep", "PreviousStep", "check_constrained_solver", "constrained_step",
-    "curve_and_forces", "drift", "lobatto_rule", "no_previous_step",
+    "ConstrainedGalerkin", "ConstrainedStep", "PreviousStep", "check_constrained_solver",
+    "constrained_step", "curve_and_forces", "drift", "lobatto_rule", "no_previous_step",
 ]
 
 # Where the solve stops: its last update this many ulps of the unknowns' size.
@@ -378,3 +384,39 @@ def curve_and_forces(solved: ConstrainedStep, basis: LagrangeBasis, ctx: StepCon
         times, q_nodes, ctx.args
     )
     return theta, forces - jnp.einsum("imd,im->id", gradients, at_nodes)
+
+
+class ConstrainedGalerkin(AbstractFormulation):
+    """The formulation of a term with holonomic constraints: the constrained Galerkin step of
+    the polynomial basis's degree, with one multiplier per Lobatto point (`constrained_step`).
+
+    It continues itself: each step starts from the last step's values and impulses
+    continued (`PreviousStep`), not from the seed policy's trajectory seed; its unknowns
+    are not ansatz parameters, so the all-parameter solve's hooks do not apply.
+    """
+
+    continues_itself: ClassVar[bool] = True
+
+    def first_start(self, ctx: StepContext) -> PreviousStep:
+        return no_previous_step(ctx.term, ctx.basis.degree, ctx.t, ctx.q0, ctx.args)
+
+    def solve_step(self, ctx: StepContext, seed, options) -> StepSolution:
+        solved = constrained_step(ctx.term, ctx.basis.degree, ctx.t, ctx.h, ctx.q0, ctx.p0,
+                                  ctx.args, options.max_steps, seed.start)
+        theta, forces = curve_and_forces(solved, ctx.basis, ctx)
+        dtype = ctx.q0.dtype
+        ok = solved.result == diffrax.RESULTS.successful
+        carried = jax.lax.stop_gradient(
+            PreviousStep(solved.values, solved.impulses, ctx.h, ok))
+        return StepSolution(
+            theta=theta, increments=(solved.dq, solved.dp), end=None, forces=forces,
+            iterations=solved.iterations, result=solved.result,
+            residual=solved.residual.astype(dtype), tolerance=solved.tolerance.astype(dtype),
+            restarted=jnp.array(False), node_values=carried, drift=solved.drift.astype(dtype),
+        )
+
+    def roots_may_drift(self, basis) -> bool:
+        return False  # the step's roots are isolated
+
+    def position(self, basis, theta, q0, q1, tau):
+        return basis.evaluate(theta, tau)
