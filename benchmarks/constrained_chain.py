@@ -235,20 +235,27 @@ def cgvi_rows(problem, reference, grid, repeats, out, tool="CGVI") -> list[dict]
     return rows
 
 
+def timed_dopri8(term, problem, y0, rtol, repeats):
+    """Dopri8 on the angle coordinates' `term` from `y0` over the problem's span, at
+    rtol = atol = `rtol`, timed: `((ys, ok, steps), compile_s, best, median)`."""
+
+    @jax.jit
+    def solve(y0):
+        sol = diffrax.diffeqsolve(
+            term, diffrax.Dopri8(), problem.t0, problem.t1, None, y0,
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
+            saveat=diffrax.SaveAt(t1=True), max_steps=2**20, throw=False)
+        return sol.ys, sol.result == diffrax.RESULTS.successful, sol.stats["num_steps"]
+
+    return timed_jax(solve, y0, repeats=repeats)
+
+
 def dopri8_rows(chain, problem, reference, rtols, repeats, out) -> list[dict]:
     term = diffrax.ODETerm(chain.jax_field)
     y0 = jnp.asarray(chain.y0)
     rows = []
     for rtol in rtols:
-        @jax.jit
-        def solve(y0, rtol=rtol):
-            sol = diffrax.diffeqsolve(
-                term, diffrax.Dopri8(), problem.t0, problem.t1, None, y0,
-                stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
-                saveat=diffrax.SaveAt(t1=True), max_steps=2**20, throw=False)
-            return sol.ys, sol.result == diffrax.RESULTS.successful, sol.stats["num_steps"]
-
-        (y, ok, taken), compile_s, best, median = timed_jax(solve, y0, repeats=repeats)
+        (y, ok, taken), compile_s, best, median = timed_dopri8(term, problem, y0, rtol, repeats)
         q, p = chain.to_state(np.asarray(y)[-1])
         err = state_error(q, p, reference)
         rows.append(make_row("Dopri8 (angles)", f"rtol = atol = {rtol:g}", taken, err,
@@ -376,15 +383,7 @@ def sphere_rows(grid_cgvi, rtols, repeats, out) -> list[dict]:
     y0 = jnp.asarray(problem.reference_flow.y0, jnp.float64)
     to_cartesian = problem.reference_flow.to_state
     for rtol in rtols:
-        @jax.jit
-        def solve(y0, rtol=rtol):
-            sol = diffrax.diffeqsolve(
-                term, diffrax.Dopri8(), problem.t0, problem.t1, None, y0,
-                stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
-                saveat=diffrax.SaveAt(t1=True), max_steps=2**20, throw=False)
-            return sol.ys, sol.result == diffrax.RESULTS.successful, sol.stats["num_steps"]
-
-        (y, ok, taken), compile_s, best, median = timed_jax(solve, y0, repeats=repeats)
+        (y, ok, taken), compile_s, best, median = timed_dopri8(term, problem, y0, rtol, repeats)
         q, p = to_cartesian(np.asarray(y, np.float64)[-1:])
         err = state_error(q[0], p[0], reference)
         drift = (abs(float(q[0] @ q[0]) - 1.0) / 2, abs(float(q[0] @ p[0])))

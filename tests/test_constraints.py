@@ -13,6 +13,7 @@ import pytest
 import diffrax_vi as dvi
 from diffrax_vi import problems
 from diffrax_vi._step.holonomic import lobatto_rule
+from tests.helpers import constrained_convergence_order
 
 jax.config.update("jax_enable_x64", True)
 
@@ -183,15 +184,7 @@ def test_a_moving_constraint_converges_at_the_order_of_the_span():
     q0 = jnp.array([jnp.sin(0.5), -jnp.cos(0.5)])
     v0 = jnp.array([0.3, 0.0]) + 0.7 * jnp.array([jnp.cos(0.5), jnp.sin(0.5)])
 
-    def end(n):
-        sol = diffrax.diffeqsolve(term, dvi.CGVI(2), 0.0, 1.0, 1.0 / n, (q0, v0),
-                                  saveat=diffrax.SaveAt(t1=True, solver_state=True),
-                                  max_steps=n + 8)
-        assert np.all(np.asarray(sol.solver_state.holonomic_drift) <= 1e-12)
-        return np.concatenate([sol.ys[0][-1], sol.ys[1][-1]])
-
-    a, b, c = end(20), end(40), end(80)
-    order = np.log2(np.max(np.abs(a - b)) / np.max(np.abs(b - c)))
+    order = constrained_convergence_order(term, (q0, v0))
     assert abs(order - 4) < 0.3, order
 
 

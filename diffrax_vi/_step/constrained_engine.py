@@ -39,17 +39,14 @@ from jaxtyping import Array
 from .._kinetic_structure import kinetic_structure
 from .._linalg import constant_product, unpivoted_inverse, well_conditioned
 from .._precision import lapack_dtype
+from .._root_finder.jacobian_free import MAX_GROWTH, MAX_UPDATES, NOISE, PREDICT_MARGIN
 from .lobatto import lobatto_arrays, lobatto_rule
 
 __all__ = ["ConstantKinetic", "constant_kinetic", "split_solve"]
 
-# The stopping rules of the engine (`_step.jacobian_free`): a predicted remaining change below
-# 1/PREDICT_MARGIN of a rounding unit, changes that stop shrinking within NOISE rounding
-# units, MAX_GROWTH growing updates above that, at most MAX_UPDATES updates.
-PREDICT_MARGIN = 1024
-NOISE = 64
-MAX_GROWTH = 2
-MAX_UPDATES = 40
+# The stopping rules share the unconstrained iteration's constants: a predicted remaining
+# change below 1/PREDICT_MARGIN of a rounding unit, changes that stop shrinking within NOISE
+# rounding units, MAX_GROWTH growing updates above that, at most MAX_UPDATES updates.
 
 
 class ConstantKinetic(NamedTuple):
