@@ -288,32 +288,32 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         seed = seeding.seed(ctx, record, made_jump, state.report.residual, state.last_iterations)
         solved = formulation.solve_step(ctx, seed, self.solve_options_for(seeding))
         if solved.increments is not None:  # added here, compensated
-            q1, p1, compensation, violation = self._end_state(ctx, state, *solved.increments)
+            q1, p1, compensation = self._add_increments(ctx, state, *solved.increments)
         else:
-            (q1, p1), compensation, violation = solved.end, state.compensation, None
+            (q1, p1), compensation = solved.end, state.compensation
         q1, p1 = q1.astype(ctx.q0.dtype), p1.astype(ctx.p0.dtype)
-        if violation is None and not kinetic_matrix_regular(ctx):
-            _, violation = end_on_constraint(ctx, q1, p1, correct=False)
+        violation = None  # known when traced: a regular kinetic matrix has no primary constraint
+        if formulation.has_primary_constraint and not kinetic_matrix_regular(ctx):
+            # a first-order Lagrangian's end state: moved onto its primary constraint where the
+            # step solved in increments (a moved coordinate carries no compensation)
+            moved, violation = end_on_constraint(ctx, q1, p1,
+                                                 correct=solved.increments is not None)
+            compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
+            q1 = moved
         return self._finish_step(ctx, state, seeding, record, seed, solved, q1, p1,
                                  compensation, violation)
 
-    def _end_state(self, ctx, state, dq, dp):
-        """`(q1, p1, compensation, violation)`: the step's start plus its increments
-        (compensated where `NetworkVI.compensated`); a first-order Lagrangian's end state is
-        moved onto its primary constraint (no change for any other; a moved coordinate
-        carries no compensation)."""
+    def _add_increments(self, ctx, state, dq, dp):
+        """`(q1, p1, compensation)`: the step's start plus its increments (compensated where
+        `NetworkVI.compensated`)."""
         if self.compensated:
             (q1, eq), (p1, ep) = (
                 compensated_add(x, d, e)
                 for x, d, e in zip((ctx.q0, ctx.p0), (dq, dp), state.compensation, strict=True)
             )
-            compensation = (eq, ep)
-        else:
-            q1, p1 = ctx.q0 + dq.astype(ctx.q0.dtype), ctx.p0 + dp.astype(ctx.p0.dtype)
-            compensation = state.compensation
-        moved, violation = end_on_constraint(ctx, q1, p1)
-        compensation = (jnp.where(moved == q1, compensation[0], 0), compensation[1])
-        return moved, p1, compensation, violation
+            return q1, p1, (eq, ep)
+        q1, p1 = ctx.q0 + dq.astype(ctx.q0.dtype), ctx.p0 + dp.astype(ctx.p0.dtype)
+        return q1, p1, state.compensation
 
     def _step_result(self, ctx, state, formulation, q1, p1, result, violation):
         """`(finite, result, constraint, first, jump)`: whether the end state is finite, the

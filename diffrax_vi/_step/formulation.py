@@ -185,6 +185,9 @@ class AbstractFormulation(eqx.Module):
     """
 
     continues_itself: ClassVar[bool] = False
+    # whether a Lagrangian linear in the velocities puts a primary constraint on the step's
+    # end state (`_step.degenerate`): not where the step solves constrained equations
+    has_primary_constraint: ClassVar[bool] = True
 
     def first_start(self, ctx: StepContext):
         """What the first step starts from, where the formulation `continues_itself`."""

@@ -396,6 +396,7 @@ class ConstrainedGalerkin(AbstractFormulation):
     """
 
     continues_itself: ClassVar[bool] = True
+    has_primary_constraint: ClassVar[bool] = False
 
     def first_start(self, ctx: StepContext) -> PreviousStep:
         return no_previous_step(ctx.term, ctx.basis.degree, ctx.t, ctx.q0, ctx.args)
