@@ -381,9 +381,8 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         failed = result != diffrax.RESULTS.successful
         # A factor of NaN (failed) or 1: derivatives through a failed step are NaN too, and
         # those of a successful one are untouched (a `where` over `NaN * q1` would leak NaN
-        # into them).
-        nan = jnp.asarray(jnp.nan, ctx.q0.dtype)
-        poison = jnp.where(failed, nan, jnp.ones((), ctx.q0.dtype))
+        # into them). The carried compensation of a failed step is NaN as well.
+        poison = _nan_if(failed, ctx.q0.dtype)
         q1 = q1 * poison
         p1 = p1 * poison
 
@@ -436,7 +435,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
             ),
             first_constraint=first,
             compensation=jax.tree_util.tree_map(
-                lambda e: jnp.where(failed, jnp.zeros_like(e), e), compensation
+                lambda e: e * poison.astype(e.dtype), compensation
             ),
             holonomic_drift=(state.holonomic_drift if solved.drift is None
                              else jnp.maximum(state.holonomic_drift, solved.drift)),
@@ -452,6 +451,14 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # Hamilton's equations without constraints: diffrax reads their size for `dt0`.
         term, direction = unwrap_term(terms)
         return term.hamilton_vf(direction * t0, check_state(y0), args)
+
+
+def _nan_if(failed: jax.Array, dtype) -> jax.Array:
+    """NaN where `failed`, else 1, as `√(1 − 2·failed)`. XLA copies cheap element-wise
+    producers into every consumer fusion, so a `where` on `failed` per state leaf would
+    recompute the step's whole failure test (its result code) once per leaf; a square root
+    is not copied, so the test is computed once and each leaf only multiplies by it."""
+    return jnp.sqrt(1 - 2 * failed.astype(dtype))
 
 
 @functools.cache
