@@ -288,6 +288,8 @@ def test_is_accepted_where_newton_is_and_checks_its_settings():
         ChordIteration(inverse=1)
     with pytest.raises(TypeError, match="predict"):
         ChordIteration(predict="yes")
+    with pytest.raises(TypeError, match="pivoted_fallback"):
+        ChordIteration(pivoted_fallback=1)
     with pytest.raises(ValueError, match="ftol"):  # the parent's checks still run
         ChordIteration(ftol=-1)
 
@@ -512,12 +514,14 @@ def test_a_non_finite_start_ends_the_solve_at_once(root_finder):
 
 
 @pytest.mark.parametrize("newton", [False, True])
-@pytest.mark.parametrize("given", ["exact", "non-finite"])
-def test_the_hint_inverse_starts_the_iteration(given, newton):
+@pytest.mark.parametrize("given, fallback", [("exact", False), ("non-finite", False),
+                                             ("non-finite", True)])
+def test_the_hint_inverse_starts_the_iteration(given, fallback, newton):
     """The hint `inverse` (the formulation's own inverse of the Jacobian) replaces the
     factorisation at the start of the chord iteration and in every Newton update; where it
-    is not finite (a vanished pivot), the pivoted factorisation takes over and the solve
-    ends at the same root."""
+    is not finite (a vanished pivot), the solve fails, or with
+    `pivoted_fallback` the pivoted factorisation takes over and the solve ends at the same
+    root."""
     from diffrax_vi._root_finder.step_hints import StepHints, step_options
 
     used = []
@@ -528,10 +532,16 @@ def test_the_hint_inverse_starts_the_iteration(given, newton):
         exact = jnp.linalg.inv(jac)
         return exact if given == "exact" else exact * jnp.nan
 
-    rf = dvi.RoundoffNewton(ftol=0.0) if newton else ChordIteration(ftol=0.0, predict=True)
+    rf = (dvi.RoundoffNewton(ftol=0.0, pivoted_fallback=fallback) if newton
+          else ChordIteration(ftol=0.0, predict=True, pivoted_fallback=fallback))
     options = step_options(StepHints(inverse=inverse, max_iterations=50))
     sol = optx.root_find(_system, rf, jnp.array([1.1, 1.9]), options=options, max_steps=50,
                          throw=False)
+    if given == "non-finite" and not fallback:
+        # the chord's update is not finite; Newton's line search finds no decrease along it
+        failed = optx.RESULTS.nonlinear_divergence if newton else optx.RESULTS.nonfinite
+        assert used and sol.result == failed
+        return
     assert used and sol.result == optx.RESULTS.successful
     np.testing.assert_allclose(np.asarray(sol.value), [1.0, 2.0], rtol=0, atol=4e-16)
     if not newton:

@@ -183,6 +183,37 @@ def test_span_is_orthonormal_in_the_quadrature_norm():
     assert bool(jnp.all(jnp.abs(curve_of(c) - expected) <= bound))
 
 
+def test_a_polynomial_curve_is_sampled_by_constant_matrices():
+    """A polynomial's curve at the nodes and ends, by `sample_matrices` (NumPy, constants of
+    the program), equals the curve evaluated, and the projected start it gives equals the
+    start of the curve itself to rounding."""
+    from diffrax_vi._step.formulation import CurveSamples
+
+    problem = problems.double_pendulum()
+    solver = dvi.CGVI(6)
+    ctx, theta = _context(problem, solver)
+    theta = jnp.asarray(np.random.default_rng(0).normal(size=(7, 2)))
+    taus = np.concatenate([np.asarray(ctx.nodes), [0.0, 1.0]])
+    values, slopes = solver.basis.sample_matrices(taus)
+    assert isinstance(values, np.ndarray) and values.shape == slopes.shape == (len(taus), 7)
+
+    def curve(tau):
+        return solver.basis.evaluate(theta, tau)
+
+    evaluated = CurveSamples.of(curve, ctx.nodes)
+    r = len(ctx.nodes)
+    sampled = CurveSamples((values @ theta)[:r], (slopes @ theta)[:r], (values @ theta)[r:])
+    for a, b in zip(sampled, evaluated, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-14)
+    span = solver.formulation.span(ctx.basis.zeros(2, jnp.float64), ctx)
+    p1 = ctx.p0 + 0.1
+    by_samples = solver.formulation.start(sampled, p1, span, ctx)
+    by_curve = solver.formulation.start(curve, p1, span, ctx)
+    for a, b in zip(by_samples, by_curve, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-14)
+    assert dvi.ShallowNetBasis(dvi.tanh, 4).sample_matrices(taus) is None
+
+
 def test_uniform_layer_features_hold_the_constant():
     # The default hidden layers fit the constant direction to 1e-10: the network that
     # the step hands to dense output is the solved curve to that, relative to |q|.

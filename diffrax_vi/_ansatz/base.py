@@ -51,6 +51,15 @@ class AbstractBasis(eqx.Module):
         tau = jnp.asarray(tau, dtype)
         return jax.jvp(lambda s: self.evaluate(theta, s), (tau,), (jnp.ones_like(tau),))
 
+    def sample_matrices(self, taus) -> tuple[Array, Array] | None:
+        """`(V, S)` (NumPy, `(len(taus), num_params)` each) with `q_h(τ_i) = (V θ)_i` and
+        `dq_h/dτ(τ_i) = (S θ)_i` for every coordinate, where the curve is that linear in `θ`
+        with matrices known when traced; else `None` (the curve is then evaluated). With
+        them a step's start at constant points is a product with constants, not an
+        evaluation of the basis that the compiled program would keep."""
+        del taus
+        return None
+
     def advance(self, theta: PyTree, ratio) -> PyTree:
         """Parameters of the continued curve on the next step.
 

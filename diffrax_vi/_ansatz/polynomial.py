@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._lagrange import continuation_coefficients, lagrange_weights
+from .._lagrange import continuation_coefficients, lagrange_values_and_slopes, lagrange_weights
 from .._quadrature import gauss_lobatto_upper, symmetric_points
 from .base import AbstractBasis
 
@@ -77,6 +77,9 @@ class LagrangeBasis(AbstractBasis):
     def evaluate(self, theta: Array, tau) -> Array:
         tau = jnp.asarray(tau, theta.dtype)
         return lagrange_weights(self.control_points, tau) @ theta
+
+    def sample_matrices(self, taus) -> tuple[np.ndarray, np.ndarray]:
+        return lagrange_values_and_slopes(self.control_points, np.asarray(taus, np.float64))
 
     def advance(self, theta: Array, ratio) -> Array:
         # Values of the same polynomial at the control points of the next step, `1 + r τ_j`:

@@ -79,8 +79,8 @@ class ChordIteration(RoundoffNewton):
     formed and LU-factorised once, at the start of the solve; every iteration then costs one
     residual and one application of the factors. Where the caller gives the hint `inverse`
     (the projected step's elimination without pivoting, cheaper than LAPACK at its sizes),
-    the start takes that explicit inverse instead, and the factorisation only where it is
-    not finite. It converges linearly, at a rate that is
+    the start takes that explicit inverse instead (with `pivoted_fallback`, the
+    factorisation where it is not finite). It converges linearly, at a rate that is
     small when
     the start is close to the root and the Jacobian varies little along the way: a non-stiff
     problem solved from the previous step's curve. A drop-in for `RoundoffNewton` wherever
@@ -143,9 +143,9 @@ class ChordIteration(RoundoffNewton):
       rounding units of the unknowns is rounding noise, whose ratio to the update before
       says nothing of the rate: there the ratio before it is the rate, and the noise's size
       the update. Never after the first update. Default `False`.
-    - `picard`, `picard_fallback`, `restart`: as for `RoundoffNewton` (the Jacobian-free
-      iteration where it fits, default `False`, `CGVI`'s default sets it; no fallback and
-      no restart inside the step by default).
+    - `picard`, `picard_fallback`, `restart`, `pivoted_fallback`: as for `RoundoffNewton`
+      (the Jacobian-free iteration where it fits, default `False`, `CGVI`'s default sets
+      it; no fallback of either kind and no restart inside the step by default).
     - `max_backtracks`: halvings of a Newton update with `refresh` (default 20).
     - `rtol`, `atol`, `norm`: unused (inherited).
 
@@ -213,13 +213,16 @@ class ChordIteration(RoundoffNewton):
 
     def _start_factors(self, fn, y, args, options, dtype) -> tuple[Array, ...]:
         """The Jacobian's factors at the start of a solve: the hint `inverse` where the caller
-        gives one (an explicit inverse computed its own, cheaper way), with the pivoted
-        factorisation where that gave non-finite entries; else `_factor`."""
+        gives one (an explicit inverse computed its own, cheaper way; with
+        `pivoted_fallback`, the pivoted factorisation where that gave non-finite entries);
+        else `_factor`."""
         given = hints_of(options).inverse
         jac = self._jacobian(fn, y, args, options)
         if given is None or not self.inverse:
             return _factor(jac, dtype, self.inverse)
         inverse = given(jac, y, args).astype(lapack_dtype(dtype))
+        if not self.pivoted_fallback:  # a non-finite inverse fails the solve (`nonfinite`)
+            return (inverse,)
         return unless_all_skip(
             ~jnp.all(jnp.isfinite(inverse)), lambda: _factor(jac, dtype, True), (inverse,)
         )

@@ -146,6 +146,11 @@ class RoundoffNewton(AbstractStepRootFinder):
       the hint's point (the seed policy's trajectory seed), inside the step. Default
       `False`: such a step fails and the step-size controller recovers it, as with
       `picard_fallback`; the restart more than doubles the compiled step.
+    - `pivoted_fallback`: where the formulation's own inverse of the Jacobian (the hint
+      `inverse`: elimination without pivoting) is not finite, a pivot having vanished, use
+      LAPACK's pivoted LU instead. Default `False`: such an update is not finite and the
+      step fails (`nonfinite`) for the step-size controller to retry; the fallback would be
+      compiled into every step for a case that needs an exactly singular leading block.
     - `rtol`, `atol`, `norm`: unused; diffrax reads them off the root finder of an implicit
       solver.
     """
@@ -162,6 +167,7 @@ class RoundoffNewton(AbstractStepRootFinder):
     picard: bool = eqx.field(static=True, default=False)
     picard_fallback: bool = eqx.field(static=True, default=False)
     restart: bool = eqx.field(static=True, default=False)
+    pivoted_fallback: bool = eqx.field(static=True, default=False)
     rtol: float | None = None
     atol: float | None = None
     norm: Callable = optx.max_norm
@@ -173,7 +179,7 @@ class RoundoffNewton(AbstractStepRootFinder):
                     and value >= least and math.isfinite(value)):
                 kind = "a non-negative" if least == 0 else "a positive"
                 raise ValueError(f"{name} must be {kind} number (of eps), got {value!r}")
-        for name in ("confirm", "picard", "picard_fallback", "restart"):
+        for name in ("confirm", "picard", "picard_fallback", "restart", "pivoted_fallback"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.picard_fallback and not self.picard:
@@ -380,8 +386,8 @@ class RoundoffNewton(AbstractStepRootFinder):
 
     def _direction(self, fn, y, args, options, f: Array) -> Array:
         """Newton's update `−J⁻¹ F` at `y`: with the hint `inverse` where the caller gives
-        one (the formulation's own inverse, cheaper than LAPACK at the sizes of a step; by
-        LU where it is not finite), else by LU of the Jacobian."""
+        one (the formulation's own inverse, cheaper than LAPACK at the sizes of a step; with
+        `pivoted_fallback`, by LU where it is not finite), else by LU of the Jacobian."""
         dtype = f.dtype
         jac = self._jacobian(fn, y, args, options)
 
@@ -393,6 +399,8 @@ class RoundoffNewton(AbstractStepRootFinder):
             return by_lu()
         inverse = given(jac, y, args)
         d = -(inverse @ f.astype(inverse.dtype)).astype(dtype)
+        if not self.pivoted_fallback:
+            return d
         # a non-finite inverse makes the update non-finite: testing the update is cheaper
         return unless_all_skip(~jnp.all(jnp.isfinite(d)), by_lu, d)
 

@@ -27,6 +27,7 @@ from .._root_finder.damped_newton import AbstractDampedNewton
 from .._root_finder.step_hints import StepHints, traits_of
 from .._step.formulation import (
     AbstractFormulation,
+    CurveSamples,
     FreeEndpoints,
     StepContext,
     residual_scale,
@@ -343,11 +344,21 @@ class Seeder(eqx.Module):
         """The start of a projected step: the previous step's curve continued, or on the
         first step the constant curve `q_n` with `p_{n+1} = p_n`."""
         theta, p1 = warm
+        p1 = jnp.where(record.fresh, ctx.p0, p1)
+        nodes = self.formulation_nodes(ctx)
+        matrices = ctx.basis.sample_matrices(np.concatenate([nodes, [0.0, 1.0]]))
+        if matrices is not None:  # a product with constants, not the basis evaluated
+            dtype = ctx.q0.dtype
+            values, slopes = (jnp.asarray(m, dtype) @ theta for m in matrices)
+            r = len(nodes)
+            values = jnp.where(record.fresh, ctx.q0, values)
+            slopes = jnp.where(record.fresh, 0, slopes).astype(dtype)
+            return CurveSamples(values[:r], slopes[:r], values[r:]), p1
 
         def curve(tau):
             return jnp.where(record.fresh, ctx.q0, ctx.basis.evaluate(theta, tau))
 
-        return curve, jnp.where(record.fresh, ctx.p0, p1)
+        return curve, p1
 
     def _warm_seed(self, ctx: StepContext, record: SeedRecord):
         """The previous step's curve continued over this step, and its end momentum."""

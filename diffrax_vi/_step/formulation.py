@@ -58,6 +58,7 @@ __all__ = [
     "InterpolatingEndpoints",
     "SolveOptions",
     "StepContext",
+    "CurveSamples",
     "StepSolution",
     "action_gradient",
     "jacobian_option",
@@ -91,6 +92,23 @@ def stage_values(curve: Callable[[Array], Array], nodes: Array) -> tuple[Array, 
         return jax.jvp(curve, (tau,), (jnp.ones_like(tau),))
 
     return jax.vmap(one)(nodes)
+
+
+class CurveSamples(NamedTuple):
+    """A curve on the step given by its samples: values and τ-slopes at the nodes (`(R, D)`
+    each) and values at `τ = 0, 1` (`(2, D)`), all a projected start needs of it."""
+
+    values: Array
+    slopes: Array
+    ends: Array
+
+    @classmethod
+    def of(cls, curve: Callable[[Array], Array] | CurveSamples, nodes: Array) -> CurveSamples:
+        """The samples of `curve` (a function of `τ`, or samples already)."""
+        if isinstance(curve, CurveSamples):
+            return curve
+        q, dq = stage_values(curve, nodes)
+        return cls(q, dq, jax.vmap(curve)(jnp.array([0.0, 1.0], nodes.dtype)))
 
 
 def node_momenta_and_forces(ctx: StepContext, q: Array, dq: Array) -> tuple[Array, Array]:

@@ -37,12 +37,12 @@ from .._linalg import constant_product, unpivoted_inverse
 from .._precision import lapack_dtype
 from .degenerate import first_order_end_correction
 from .formulation import (
+    CurveSamples,
     FreeEndpoints,
     SolveOptions,
     StepContext,
     StepSolution,
     node_momenta_and_forces,
-    stage_values,
 )
 from .projected_solve import solve_projected
 from .span import ProjectedSpan, any_traced, feature_span
@@ -231,15 +231,14 @@ class VariableProjection(FreeEndpoints):
         span = feature_span(value, slope, weights, k, rtol, hidden)
         return span if known else jax.lax.stop_gradient(span)
 
-    def reduce(self, curve: Callable[[Array], Array], span: ProjectedSpan, ctx: StepContext
-               ) -> Array:
-        """Coefficients `(k, D)` of a curve `τ ↦ q(τ)` (e.g. a network with any hidden layer)
-        on `span`, by least squares in the quadrature's norm (the directions are orthogonal
-        in it, so each coefficient is one inner product)."""
+    def reduce(self, curve: Callable[[Array], Array] | CurveSamples, span: ProjectedSpan,
+               ctx: StepContext) -> Array:
+        """Coefficients `(k, D)` of a curve `τ ↦ q(τ)` (e.g. a network with any hidden layer,
+        or its `CurveSamples`) on `span`, by least squares in the quadrature's norm (the
+        directions are orthogonal in it, so each coefficient is one inner product)."""
         dtype = ctx.q0.dtype
         b = ctx.weights.astype(dtype)
-        q, dq = stage_values(curve, ctx.nodes.astype(dtype))
-        ends = jax.vmap(curve)(jnp.array([0.0, 1.0], dtype))
+        q, dq, ends = CurveSamples.of(curve, ctx.nodes.astype(dtype))
         g1 = span.g1
 
         def inner(q, dq, e0, e1):
@@ -252,11 +251,16 @@ class VariableProjection(FreeEndpoints):
         c = inner(q, dq, ends[0], ends[1]) / jnp.where(span.live, norms, 1)
         return jnp.where(span.live, c, 0)
 
-    def start(self, curve: Callable[[Array], Array], p1: Array, span: ProjectedSpan,
-              ctx: StepContext) -> tuple[Array, Array]:
-        """The unknowns `z = (δc, p_{n+1} − p_n)` of the curve `curve` and the end momentum
-        `p1`: the Newton start."""
-        dc = self.reduce(lambda tau: curve(tau) - ctx.q0, span, ctx)
+    def start(self, curve: Callable[[Array], Array] | CurveSamples, p1: Array,
+              span: ProjectedSpan, ctx: StepContext) -> tuple[Array, Array]:
+        """The unknowns `z = (δc, p_{n+1} − p_n)` of the curve `curve` (or its samples) and
+        the end momentum `p1`: the Newton start."""
+        if isinstance(curve, CurveSamples):
+            moved = curve._replace(values=curve.values - ctx.q0, ends=curve.ends - ctx.q0)
+        else:
+            def moved(tau):
+                return curve(tau) - ctx.q0
+        dc = self.reduce(moved, span, ctx)
         return dc, (p1 - ctx.p0).astype(ctx.p0.dtype)
 
     def coefficients(self, dc: Array, ctx: StepContext) -> Array:
