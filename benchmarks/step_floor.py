@@ -23,7 +23,10 @@ optimised HLO instructions, while loops), and the first call of a fresh process 
 compile and one run; no persistent compilation cache) of `CGVI(6)` (its default, and the
 chord iteration with its restart, the default before 2026-12-02) and `NetworkVI` against
 `diffrax.Dopri8`'s on the same problem, double pendulum and Kepler, 10 steps each: `--fresh`
-runs, interleaved, medians and their ratios.
+runs, interleaved, medians and their ratios. Beside them, as a calibration of what an
+implicit step costs to compile, diffrax's own implicit solvers `Kvaerno5` and `ImplicitEuler`
+(`VeryChord` at rtol = atol = 1e-12; their results are not used: at this step `Kvaerno5`'s
+Newton solve diverges on the double pendulum).
 
     .venv/bin/python -m benchmarks.step_floor [--degree 6] [--members 256] [--fresh 5]
         [--only steps|sizes|first-call]
@@ -250,8 +253,11 @@ def program_sizes(args) -> list[str]:
                                        picard_fallback=True)
     chord = dvi.ChordIteration(ftol=0.0, predict=True)
     restarting = dvi.ChordIteration(ftol=0.0, predict=True, restart=True)
+    implicit = diffrax.VeryChord(rtol=1e-12, atol=1e-12)
     solvers = {
         "Dopri8": diffrax.Dopri8(),
+        "Kvaerno5": diffrax.Kvaerno5(root_finder=implicit),
+        "ImplicitEuler": diffrax.ImplicitEuler(root_finder=implicit),
         "CGVI(6)": dvi.CGVI(6),
         "CGVI(6) engine+fallback": dvi.CGVI(6, root_finder=fallback),
         "CGVI(6) chord": dvi.CGVI(6, root_finder=chord),
@@ -288,13 +294,18 @@ from diffrax_vi import problems
 name, which = sys.argv[1], sys.argv[2]
 problem = getattr(problems, name)()
 restarting = dvi.ChordIteration(ftol=0.0, predict=True, restart=True)
+implicit = diffrax.VeryChord(rtol=1e-12, atol=1e-12)
 solver = {"Dopri8": diffrax.Dopri8(), "CGVI(6)": dvi.CGVI(6),
+          "Kvaerno5": diffrax.Kvaerno5(root_finder=implicit),
+          "ImplicitEuler": diffrax.ImplicitEuler(root_finder=implicit),
           "CGVI(6) chord+restart": dvi.CGVI(6, root_finder=restarting),
           "NetworkVI": dvi.NetworkVI(dvi.ShallowNetBasis(dvi.tanh, 10))}[which]
 h = float(problem.dt)
 t0 = time.perf_counter()
+# diffrax's implicit solvers are timed for their compilation only (see the docstring)
 sol = diffrax.diffeqsolve(problem.term, solver, 0.0, 10 * h, h, problem.y0, args=problem.args,
-                          max_steps=16)
+                          max_steps=16, throw=which in ("Dopri8", "CGVI(6)", "NetworkVI",
+                                                        "CGVI(6) chord+restart"))
 jax.block_until_ready(sol.ys)
 print(time.perf_counter() - t0)
 """
@@ -305,7 +316,7 @@ def first_calls(args) -> list[str]:
              f"{args.fresh} interleaved runs"]
     for problem in ("double_pendulum", "kepler"):
         times = {which: [] for which in ("Dopri8", "CGVI(6)", "CGVI(6) chord+restart",
-                                         "NetworkVI")}
+                                         "NetworkVI", "Kvaerno5", "ImplicitEuler")}
         for _ in range(args.fresh):
             for which in times:
                 out = subprocess.run(
