@@ -376,6 +376,7 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         formulation, theta, n = seeding.formulation, solved.theta, solved.iterations
         finite, result, constraint, first, jump = self._step_result(
             ctx, state, formulation, q1, p1, solved.result, violation)
+        result = _computed_once(result)
         # A failed step's end state is never passed off as data: the steps before it stay,
         # this one is NaN (with `throw=False`), and `report` says where and why it failed.
         failed = result != diffrax.RESULTS.successful
@@ -451,6 +452,18 @@ class NetworkVI(diffrax.AbstractImplicitSolver):
         # Hamilton's equations without constraints: diffrax reads their size for `dt0`.
         term, direction = unwrap_term(terms)
         return term.hamilton_vf(direction * t0, check_state(y0), args)
+
+
+def _computed_once(result):
+    """`result` (a `RESULTS` item: a small non-negative code) read back through a square
+    root, `round(√c · √c)`, exact for codes this small. XLA copies cheap element-wise
+    producers into every consumer fusion, so each user of the code (the state's failure
+    factor, its report, diffrax's own bookkeeping) would recompute the step's whole failure
+    test; a square root is not copied, so the test runs once and the users only square it."""
+    code = jax.tree_util.tree_leaves(result)[0]
+    root = jnp.sqrt(code.astype(jnp.float32))
+    value = jnp.round(root * root).astype(code.dtype)
+    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(result), [value])
 
 
 def _nan_if(failed: jax.Array, dtype) -> jax.Array:
