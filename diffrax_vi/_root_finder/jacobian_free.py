@@ -28,8 +28,8 @@ from .._linalg import elimination_solve
 from .._results import lookup
 from .step_hints import AbstractStepRootFinder, hints_of
 
-__all__ = ["JacobianFreeIteration", "JacobianFreeState", "MAX_GROWTH", "MAX_UPDATES", "NOISE",
-           "PREDICT_MARGIN"]
+__all__ = ["AHEAD_MARGIN", "FLOOR_DELAY", "JacobianFreeIteration", "JacobianFreeState",
+           "MAX_GROWTH", "MAX_UPDATES", "NOISE", "PREDICT_MARGIN"]
 
 # Updates at most before the iteration gives up.
 MAX_UPDATES = 40
@@ -39,6 +39,12 @@ PREDICT_MARGIN = 1024
 # A change within NOISE rounding units is rounding noise: once the changes stop shrinking
 # there, the iteration is at round-off.
 NOISE = 64
+# Stop after an update whose remaining error, predicted from the updates before it, is below
+# 1/AHEAD_MARGIN of a rounding unit (`_iterate`).
+AHEAD_MARGIN = 4096
+# Updates made after the round-off tests (`PREDICT_MARGIN`, `NOISE`) first pass, before the
+# iteration stops on them (`_iterate`).
+FLOOR_DELAY = 2
 # Consecutive growing updates, above the noise, that end the iteration as not contracting.
 MAX_GROWTH = 2
 
@@ -195,8 +201,8 @@ class _Carry(NamedTuple):
     stats: Array
 
 
-_STATS = ("change", "rate", "residual", "growth", "updates", "converged", "done")
-_CHANGE, _RATE, _RESIDUAL, _GROWTH, _UPDATES, _CONVERGED, _DONE = range(len(_STATS))
+_STATS = ("change", "rate", "residual", "growth", "updates", "converged", "done", "floor")
+_CHANGE, _RATE, _RESIDUAL, _GROWTH, _UPDATES, _CONVERGED, _DONE, _FLOOR = range(len(_STATS))
 
 
 def _iterate(z0, residual, correction) -> _Carry:
@@ -224,17 +230,30 @@ def _iterate(z0, residual, correction) -> _Carry:
         # a fast one dies out understates the slow one's (stopping one update early leaves an
         # error of the same sign on every step, an energy drift)
         worst = jnp.maximum(rate, last[_RATE])
+        # Whether to stop after this update is decided on the updates before it: this one's
+        # change, at round-off, is mostly the rounding noise of the iterate it made, and
+        # stopping on it picks iterates by their noise (stopping when the change looks small
+        # keeps iterates whose noise has the sign of the error left before it: an error of
+        # one sign on every step, an energy drift). The remaining error after this update is
+        # about `change_prev · w² / (1 − w)` with `w` the rate of the update before it.
+        ahead = last[_RATE]
+        predicted_ahead = (jnp.isfinite(ahead) & (ahead < 1)
+                           & (last[_CHANGE] * ahead * ahead <= (1 - ahead) * eps / AHEAD_MARGIN))
+        # the tests on this update's change (predicted from it, or at the noise) stop only
+        # FLOOR_DELAY updates after they first pass, so that the iterate returned is not the
+        # one they picked
         predicted = known & (worst < 1) & (change * worst <= (1 - worst) * eps / PREDICT_MARGIN)
         at_noise = (change <= NOISE * eps) & (change >= 0.5 * last[_CHANGE])
+        floor = jnp.where((last[_FLOOR] > 0) | predicted | at_noise, last[_FLOOR] + 1, 0)
         finite = jnp.isfinite(change)
-        converged = ((change == 0) | predicted | at_noise) & finite
+        converged = ((change == 0) | predicted_ahead | (floor > FLOOR_DELAY)) & finite
         growing = (change > NOISE * eps) & (change >= last[_CHANGE])
         growth = jnp.where(growing, last[_GROWTH] + 1, 0)
         updates = last[_UPDATES] + 1
         done = converged | ~finite | (growth > MAX_GROWTH) | (updates >= MAX_UPDATES)
         # one array, so that the scalars are one fused kernel rather than one each
         stats = jnp.stack([change, jnp.where(known, rate, jnp.inf), fsize, growth, updates,
-                           converged, done]).astype(dtype)
+                           converged, done, floor]).astype(dtype)
         return _Carry(x, f, stats)
 
     stats = np.zeros(len(_STATS))

@@ -24,7 +24,7 @@ from .._root_finder.jacobian_free import JacobianFreeIteration
 from .._root_finder.solve import step_root_find
 from .._root_finder.step_hints import StepHints, step_options, traits_of
 from .formulation import SolveOptions, StepContext, StepSolution, residual_scale
-from .jacobian_free import end_offsets, engine_start, engine_update
+from .jacobian_free import end_increments, end_offsets, engine_start, engine_update
 
 __all__ = ["FIRST_TRY", "projected_root_find", "solve_projected", "with_known_span"]
 
@@ -95,7 +95,9 @@ def _solve_by_engine(form, ctx: StepContext, options: SolveOptions, engine, valu
                               engine_update=engine_update(engine), root_finder=iteration)
     solved = _solution(form, options, ctx, span, sol, iteration)
     offsets = jax.lax.stop_gradient(end_offsets(engine, ctx, sol.value, values[1]))
-    return solved._replace(node_values=(solved.forces, offsets.astype(ctx.p0.dtype)))
+    # the end's increment summed accurately (`end_increments`: its rounding is a drift)
+    return solved._replace(increments=end_increments(engine, ctx, sol.value),
+                           node_values=(solved.forces, offsets.astype(ctx.p0.dtype)))
 
 
 def projected_root_find(form, options: SolveOptions, ctx: StepContext, span, z0,
