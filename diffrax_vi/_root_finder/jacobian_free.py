@@ -64,7 +64,9 @@ class JacobianFreeState(eqx.Module):
 
 class JacobianFreeIteration(AbstractStepRootFinder):
     """Solve `F(z) = 0` by `z ← z + update(z, F(z))` from the start until the change is at
-    round-off (predicted from the contraction, or seen to stop shrinking), with a
+    round-off (predicted from the contraction of the updates before the last, or, a few
+    updates after, from the last change or its ceasing to shrink: a stop decided on the last
+    change alone would pick iterates by their rounding noise, an energy drift), with a
     constant-matrix update that the caller gives as the hint `update` (and, optionally, a
     cheaper evaluation of the same residual without derivatives as the hint
     `fast_residual`). The whole solve runs in one optimistix step.
