@@ -319,3 +319,32 @@ def test_the_iteration_refuses_a_step_without_its_update():
     with pytest.raises(ValueError, match="needs the hint `update`"):
         one_step_solve(JacobianFreeIteration(), residual, (jnp.ones((2, 1)), jnp.ones(1)), None,
                        step_options(StepHints(max_iterations=10)))
+
+
+def test_the_end_increment_is_summed_without_rounding():
+    """`end_increments` sums `Σ_k gd_k δc_k` to within a rounding unit of the exact sum even
+    where the terms cancel (where the plain sum is off by many), and differentiates as the
+    plain sum."""
+    import types
+    from fractions import Fraction
+
+    from diffrax_vi._step.jacobian_free import end_increments
+
+    rng = np.random.default_rng(3)
+    gd = rng.normal(size=(2, 7))  # (D, k)
+    dc = rng.normal(size=(7, 2))
+    # make the sums cancel: the last direction nearly undoes the others
+    dc[6] = -(np.einsum("dk,kd->d", gd[:, :6], dc[:6]) / gd[:, 6]) * (1 + 1e-9)
+    engine = types.SimpleNamespace(span=types.SimpleNamespace(gd=gd))
+    ctx = types.SimpleNamespace(q0=jnp.zeros(2), p0=jnp.zeros(2))
+    z = (jnp.asarray(dc), jnp.zeros(2))
+    dq, _ = end_increments(engine, ctx, z)
+    eps = float(np.finfo(np.float64).eps)
+    plain = np.einsum("dk,kd->d", gd, dc)
+    for d in range(2):
+        exact = sum(Fraction(float(gd[d, k])) * Fraction(float(dc[k, d])) for k in range(7))
+        size = sum(abs(gd[d, k] * dc[k, d]) for k in range(7))
+        assert abs(Fraction(float(dq[d])) - exact) <= abs(exact) * eps + 16 * eps**2 * size
+        assert abs(Fraction(float(plain[d])) - exact) > 100 * abs(exact) * eps  # not trivial
+    grad = jax.jacfwd(lambda c: end_increments(engine, ctx, (c, z[1]))[0])(z[0])
+    np.testing.assert_array_equal(grad, jax.jacfwd(lambda c: jnp.einsum("dk,kd->d", gd, c))(z[0]))
