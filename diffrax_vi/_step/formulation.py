@@ -54,11 +54,11 @@ from .._terms import AbstractMechanicalTerm
 
 __all__ = [
     "AbstractFormulation",
+    "CurveSamples",
     "FreeEndpoints",
     "InterpolatingEndpoints",
     "SolveOptions",
     "StepContext",
-    "CurveSamples",
     "StepSolution",
     "action_gradient",
     "jacobian_option",

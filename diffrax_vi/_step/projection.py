@@ -29,10 +29,8 @@ import numpy as np
 from jaxtyping import Array
 
 from .._ansatz.base import AbstractBasis
-from .._ansatz.polynomial import LagrangeBasis
 from .._ansatz.shallow import ShallowNetBasis
 from .._hidden_layers import AbstractHiddenLayer, UniformLayer
-from .._lagrange import lagrange_values_and_slopes
 from .._linalg import constant_product, unpivoted_inverse
 from .._precision import lapack_dtype
 from .degenerate import first_order_end_correction
@@ -98,9 +96,10 @@ def _known_features(theta, basis: AbstractBasis, nodes, dim: int, dtype):
     compiled program (operation by operation, each would compile on its own), run now
     (`VariableProjection.span` calls it in JAX's eager context, even while a step is being
     traced)."""
-    if type(basis) is LagrangeBasis:  # closed form in NumPy: nothing to compile
-        taus = np.concatenate([np.asarray(nodes, np.float64), [0.0, 1.0]])
-        value, slope = lagrange_values_and_slopes(basis.control_points, taus)
+    taus = np.concatenate([np.asarray(nodes, np.float64), [0.0, 1.0]])
+    matrices = basis.sample_matrices(taus)
+    if matrices is not None:  # closed form in NumPy (`LagrangeBasis`): nothing to compile
+        value, slope = matrices
         return (np.repeat(value[:, :, None], dim, axis=2).astype(dtype),
                 np.repeat(slope[:, :, None], dim, axis=2).astype(dtype), ())
     arrays, static = eqx.partition((theta, basis, nodes), eqx.is_array)
