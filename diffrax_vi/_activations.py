@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = [
     "tanh",
@@ -26,6 +27,7 @@ __all__ = [
     "check_activation",
     "activation_name",
     "package_activation",
+    "numpy_value_and_slope",
 ]
 
 
@@ -139,29 +141,61 @@ def activation_name(activation: Callable) -> str:
 def check_activation(activation: Callable, dtype) -> None:
     """Refuse an activation that does not stay in the working precision.
 
-    Evaluates `activation(T(1/3))` for the working dtype `T` (eagerly, also while tracing)
-    and raises `ValueError` if the result is not a finite scalar of dtype `T`: an activation
-    written with a float64 constant silently promotes float16/float32 runs to float64.
+    Evaluates `activation(T(1/3))` for the working dtype `T` and raises `ValueError` if the
+    result is not a finite scalar of dtype `T`: an activation written with a float64
+    constant silently promotes float16/float32 runs to float64. The shape and dtype come from
+    tracing it (`jax.eval_shape`); the value from its NumPy form where it has one
+    (`numpy_value_and_slope`: nothing is compiled), else from JAX, eagerly (also while a step
+    is being traced).
     """
     dtype = jnp.dtype(dtype)
     name = activation_name(activation)
-    with jax.ensure_compile_time_eval():
-        try:
-            out = activation(jnp.asarray(1.0 / 3.0, dtype=dtype))
-        except Exception as err:  # noqa: BLE001 - re-raised with context
-            raise ValueError(
-                f"activation {name} cannot be evaluated at dtype {dtype}: {err}"
-            ) from err
-        out_dtype = jnp.result_type(out)
-        if jnp.shape(out) != ():
-            raise ValueError(
-                f"activation {name} must act elementwise; a scalar input gave shape "
-                f"{jnp.shape(out)}"
-            )
-        if out_dtype != dtype:
-            raise ValueError(
-                f"activation {name} promotes {dtype} input to {out_dtype}; write it so that it "
-                f"keeps the input dtype (e.g. no float64 constants)"
-            )
-        if not bool(jnp.isfinite(out)):
-            raise ValueError(f"activation {name} is not finite at x = 1/3 in {dtype}")
+    x = np.asarray(1.0 / 3.0, dtype)
+    try:
+        out = jax.eval_shape(activation, jax.ShapeDtypeStruct((), dtype))
+        if isinstance(out, jax.ShapeDtypeStruct) and out.shape == () and out.dtype == dtype:
+            twin = numpy_value_and_slope(activation)
+            if twin is not None:
+                value = twin(x)[0]
+            else:
+                with jax.ensure_compile_time_eval():
+                    value = np.asarray(activation(jnp.asarray(x)))
+    except Exception as err:  # noqa: BLE001 - re-raised with context
+        raise ValueError(
+            f"activation {name} cannot be evaluated at dtype {dtype}: {err}"
+        ) from err
+    if not isinstance(out, jax.ShapeDtypeStruct) or out.shape != ():
+        shape = getattr(out, "shape", type(out).__name__)
+        raise ValueError(
+            f"activation {name} must act elementwise; a scalar input gave shape {shape}"
+        )
+    if out.dtype != dtype:
+        raise ValueError(
+            f"activation {name} promotes {dtype} input to {out.dtype}; write it so that it "
+            f"keeps the input dtype (e.g. no float64 constants)"
+        )
+    if not np.all(np.isfinite(value)):
+        raise ValueError(f"activation {name} is not finite at x = 1/3 in {dtype}")
+
+
+def _numpy_tanh(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    y = np.tanh(z)
+    return y, (1 + y) * (1 - y)
+
+
+def _numpy_sigmoid(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    y = 1 / (1 + np.exp(-z))
+    return y, y * (1 - y)
+
+
+_NUMPY_TWINS: dict[Callable, Callable] = {tanh: _numpy_tanh, sigmoid: _numpy_sigmoid}
+
+
+def numpy_value_and_slope(activation: Callable) -> Callable | None:
+    """`z ↦ (σ(z), σ'(z))` in NumPy for an activation of this module that has a closed form
+    there (`tanh`, `sigmoid`), else `None`: features at points known when a step is traced
+    are then constants, with no program to compile for them."""
+    try:
+        return _NUMPY_TWINS.get(package_activation(activation))
+    except TypeError:  # an unhashable activation
+        return None

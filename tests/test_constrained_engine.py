@@ -30,22 +30,28 @@ def test_the_split_iteration_converges_to_the_general_solves_root(degree, h, lin
     t = 0.5
     q0, p0, previous = _state_after(problem, degree, h, t)
     t, h = jnp.asarray(t), jnp.asarray(h)
-    residual, _ = holonomic._equations(problem.term, degree, t, h, q0, p0, None)
-    kinetic = engine.constant_kinetic(problem.term, t, q0, None)
-    assert kinetic is not None  # the chain's kinetic matrix is constant: the split step
-    start = holonomic._start(problem.term, degree, t, h, q0, p0, None, previous,
-                             velocity=kinetic.velocity)
-    scale = 1 + jnp.max(jnp.abs(p0))
-    split, updates, converged, finite, _ = engine.split_solve(
-        kinetic, degree, t, h, q0, None, problem.term, residual, start, scale)
+
+    @jax.jit  # one program: run op by op, these solves took most of the test's time
+    def both_solves(q0, p0, previous):
+        residual, _ = holonomic._equations(problem.term, degree, t, h, q0, p0, None)
+        kinetic = engine.constant_kinetic(problem.term, t, q0, None)
+        assert kinetic is not None  # the chain's kinetic matrix is constant: the split step
+        start = holonomic._start(problem.term, degree, t, h, q0, p0, None, previous,
+                                 velocity=kinetic.velocity)
+        scale = 1 + jnp.max(jnp.abs(p0))
+        split, updates, converged, finite, _ = engine.split_solve(
+            kinetic, degree, t, h, q0, None, problem.term, residual, start, scale)
+        newton, *_ = holonomic._newton(residual, start, scale, 100)
+        return split, updates, converged, finite, newton, residual(split), scale
+
+    split, updates, converged, finite, newton, (balance, on), scale = both_solves(
+        q0, p0, previous)
     assert bool(converged) and bool(finite)
     assert int(updates) <= 15  # a contraction of the engine's rate, not the fallback's cap
-    newton, *_ = holonomic._newton(residual, start, scale, 100)
     # the same root: the curve to round-off, the impulses to their conditioning
     assert np.max(np.abs(np.asarray(split[0] - newton[0]))) <= 1e-14
     mu = np.max(np.abs(np.asarray(newton[1])))
     assert np.max(np.abs(np.asarray(split[1] - newton[1]))) <= 1e-11 * mu
-    balance, on = residual(split)
     assert np.max(np.abs(np.asarray(on))) <= 1e-14
     assert np.max(np.abs(np.asarray(balance))) <= 1e-13 * float(scale)
 

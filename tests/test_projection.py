@@ -735,17 +735,19 @@ def test_a_known_span_is_the_traced_span(dtype, shape):
     np.testing.assert_array_equal(np.asarray(known.live), np.asarray(traced.live))
 
 
-def test_a_known_span_compiles_one_program():
-    """Computed when the step is traced, the span of a fixed hidden layer compiles one
-    program (the features' values and slopes) and computes the rest in NumPy: evaluated by
-    JAX operation by operation it compiled some 80 programs, seconds of a first call."""
+@pytest.mark.parametrize("activation, programs", [(dvi.tanh, 0), (dvi.gelu, 1)])
+def test_a_known_span_compiles_at_most_one_program(activation, programs):
+    """Computed when the step is traced, the span of a fixed hidden layer is NumPy where the
+    activation has a NumPy form (tanh) and otherwise compiles one program (the features'
+    values and slopes); the rest is NumPy. Evaluated by JAX operation by operation it
+    compiled some 80 programs, seconds of a first call."""
     from jax.monitoring import (
         register_event_duration_secs_listener,
         unregister_event_duration_listener,
     )
 
     problem = problems.double_pendulum()
-    solver = projected(dvi.tanh, 7, 11)  # sizes that no other test compiles
+    solver = projected(activation, 7, 11)  # sizes that no other test compiles
     form = solver.formulation
     ctx = solver.step_context(problem.term, 0.0, 0.1, problem.y0, problem.args)
     hidden = form.hidden.parameters(solver.basis, 2, ctx.q0.dtype)
@@ -762,7 +764,7 @@ def test_a_known_span_compiles_one_program():
     finally:
         unregister_event_duration_listener(count)
     assert all(isinstance(leaf, jax.Array) for leaf in jax.tree_util.tree_leaves(span))
-    assert len(compiles) == 1, len(compiles)
+    assert len(compiles) == programs, len(compiles)
     # computed while a step is traced, it is as concrete (a constant of the compiled step)
     inside = []
     jax.make_jaxpr(lambda q: inside.append(form.span(hidden, ctx)) or q)(ctx.q0)
@@ -770,3 +772,24 @@ def test_a_known_span_compiles_one_program():
                     strict=True):
         assert not isinstance(b, jax.core.Tracer)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("activation", [dvi.tanh, dvi.sigmoid, jax.nn.sigmoid])
+def test_numpy_features_agree_with_the_compiled_ones(activation):
+    """The NumPy form of a network's features at known points (`tanh`, `sigmoid`) gives the
+    values and slopes that JAX computes, to a few rounding units."""
+    from diffrax_vi._step import projection
+
+    basis = dvi.ShallowNetBasis(activation, 6)
+    theta = jax.random.normal(jax.random.PRNGKey(3), (18, 2))
+    nodes = dvi.GaussLegendre(5).nodes_weights_np()[0]
+    taus = np.concatenate([nodes, [0.0, 1.0]])
+    numpy_value, numpy_slope, _ = projection._numpy_network_features(
+        theta, basis, taus, jnp.dtype(jnp.float64))
+    value, slope, _ = projection._features_at(theta, basis, nodes, 2, jnp.dtype(jnp.float64))
+    assert isinstance(numpy_value, np.ndarray) and numpy_value.shape == (7, 6, 2)
+    np.testing.assert_allclose(numpy_value, value, rtol=0, atol=4e-16)
+    w_max = float(jnp.max(jnp.abs(theta)))
+    np.testing.assert_allclose(numpy_slope, slope, rtol=0, atol=4e-16 * w_max)
+    assert projection._numpy_network_features(theta, dvi.ShallowNetBasis(dvi.gelu, 6), taus,
+                                              jnp.dtype(jnp.float64)) is None

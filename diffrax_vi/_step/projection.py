@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._activations import numpy_value_and_slope
 from .._ansatz.base import AbstractBasis
 from .._ansatz.shallow import ShallowNetBasis
 from .._hidden_layers import AbstractHiddenLayer, UniformLayer
@@ -92,16 +93,20 @@ def _features_at(theta, basis: AbstractBasis, nodes: Array, dim: int, dtype):
 
 
 def _known_features(theta, basis: AbstractBasis, nodes, dim: int, dtype):
-    """`_features_at` of inputs known when the step is traced, as NumPy arrays, by one
-    compiled program (operation by operation, each would compile on its own), run now
-    (`VariableProjection.span` calls it in JAX's eager context, even while a step is being
-    traced)."""
+    """`_features_at` of inputs known when the step is traced, as NumPy arrays: in NumPy
+    where the ansatz has a closed form there (`sample_matrices` of a linear ansatz, a network
+    whose activation has `numpy_value_and_slope`), else by one compiled program (operation by
+    operation, each would compile on its own), run now (`VariableProjection.span` calls it in
+    JAX's eager context, even while a step is being traced)."""
     taus = np.concatenate([np.asarray(nodes, np.float64), [0.0, 1.0]])
     matrices = basis.sample_matrices(taus)
     if matrices is not None:  # closed form in NumPy (`LagrangeBasis`): nothing to compile
         value, slope = matrices
         return (np.repeat(value[:, :, None], dim, axis=2).astype(dtype),
                 np.repeat(slope[:, :, None], dim, axis=2).astype(dtype), ())
+    numpy_features = _numpy_network_features(theta, basis, taus, dtype)
+    if numpy_features is not None:
+        return numpy_features
     arrays, static = eqx.partition((theta, basis, nodes), eqx.is_array)
     try:
         hash(static)
@@ -110,6 +115,23 @@ def _known_features(theta, basis: AbstractBasis, nodes, dim: int, dtype):
         program = jax.jit(_features_program.__wrapped__, static_argnums=(1, 2, 3))
     out = program(arrays, static, dim, dtype)
     return jax.tree_util.tree_map(np.asarray, out)
+
+
+def _numpy_network_features(theta, basis: AbstractBasis, taus: np.ndarray, dtype):
+    """`_features_at` of a network whose activation has a NumPy form
+    (`numpy_value_and_slope`) and whose parameters are known now, in NumPy in the working
+    dtype; else `None`."""
+    if not isinstance(basis, ShallowNetBasis) or isinstance(theta, jax.core.Tracer):
+        return None
+    activation = numpy_value_and_slope(basis.activation)
+    if activation is None:
+        return None
+    s = basis.width  # a projectable network has no mirrored pairs: (α, w, β) in blocks
+    theta = np.asarray(theta)
+    w, beta = theta[s:2 * s], theta[2 * s:]
+    z = w * taus.astype(dtype)[:, None, None] + beta  # (K, S, D), promoted as in JAX
+    value, slope = activation(z)
+    return value, w * slope, (w, beta)
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3))
@@ -220,8 +242,8 @@ class VariableProjection(FreeEndpoints):
 
     def _span(self, theta: Array, basis: AbstractBasis, nodes: Array, weights: Array,
               dim: int, dtype) -> ProjectedSpan:
-        # Known when the step is traced (see `feature_span`): the features' values by one
-        # compiled program, the rest as `feature_span` computes it.
+        # Known when the step is traced (see `feature_span`): the features' values in NumPy
+        # or by one compiled program, the rest as `feature_span` computes it.
         known = not any_traced(theta, basis, nodes, weights)
         features = _known_features if known else _features_at
         value, slope, hidden = features(theta, basis, nodes, dim, jnp.dtype(dtype))
