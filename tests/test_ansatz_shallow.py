@@ -90,12 +90,12 @@ def test_shallow_refuses_bad_arguments():
 )
 def test_network_jet_matches_autodiff(activation):
     """Values, slopes, their parameter gradients and a weighted Hessian of the network at a
-    few points, against JAX differentiating `ShallowNetBasis.evaluate`."""
+    few points, against JAX differentiating `ShallowNetBasis.evaluate` (both in one compiled
+    program: op by op, its hundred small programs took most of the test's time)."""
     basis = dvi.ShallowNetBasis(activation, 4)
     dim, taus = 3, jnp.array([0.0, 0.2, 0.7, 1.0], F64)
     theta = jax.random.normal(jax.random.PRNGKey(3), (basis.num_params(), dim), F64)
     u, v = jax.random.normal(jax.random.PRNGKey(4), (2, taus.size, dim), F64)
-    jet = basis.jet(theta, taus)
 
     def curve(th_d, tau):
         return basis.evaluate(th_d[:, None], tau)[0]
@@ -107,18 +107,27 @@ def test_network_jet_matches_autodiff(activation):
         return jnp.sum(u_d * jax.vmap(curve, (None, 0))(th_d, taus)
                        + v_d * jax.vmap(slope, (None, 0))(th_d, taus))
 
-    per_point = jax.vmap(jax.vmap(curve, (1, None)), (None, 0))  # (K, D)
-    per_point_slope = jax.vmap(jax.vmap(slope, (1, None)), (None, 0))
-    q, dq = jet.values()
-    np.testing.assert_allclose(q, per_point(theta, taus), rtol=0, atol=1e-14)
-    np.testing.assert_allclose(dq, per_point_slope(theta, taus), rtol=0, atol=1e-13)
-    grad_q, grad_dq = jet.gradients()
-    want_q = jax.vmap(jax.vmap(jax.grad(curve), (1, None)), (None, 0))(theta, taus)
-    want_dq = jax.vmap(jax.vmap(jax.grad(slope), (1, None)), (None, 0))(theta, taus)
-    np.testing.assert_allclose(grad_q, want_q, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(grad_dq, want_dq, rtol=0, atol=1e-13)
-    hess = jet.weighted_hessian(u, v)
-    want = jax.vmap(jax.hessian(psi), in_axes=(1, 1, 1))(theta, u, v)
+    @jax.jit
+    def closed_form_and_autodiff(theta, u, v):
+        jet = basis.jet(theta, taus)
+        per_point = jax.vmap(jax.vmap(curve, (1, None)), (None, 0))  # (K, D)
+        per_point_slope = jax.vmap(jax.vmap(slope, (1, None)), (None, 0))
+        closed = (*jet.values(), *jet.gradients(), jet.weighted_hessian(u, v))
+        autodiff = (
+            per_point(theta, taus),
+            per_point_slope(theta, taus),
+            jax.vmap(jax.vmap(jax.grad(curve), (1, None)), (None, 0))(theta, taus),
+            jax.vmap(jax.vmap(jax.grad(slope), (1, None)), (None, 0))(theta, taus),
+            jax.vmap(jax.hessian(psi), in_axes=(1, 1, 1))(theta, u, v),
+        )
+        return closed, autodiff
+
+    (q, dq, grad_q, grad_dq, hess), (want_q, want_dq, want_gq, want_gdq, want) = (
+        closed_form_and_autodiff(theta, u, v))
+    np.testing.assert_allclose(q, want_q, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(dq, want_dq, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(grad_q, want_gq, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(grad_dq, want_gdq, rtol=0, atol=1e-13)
     assert hess.shape == (dim, basis.num_params(), basis.num_params())
     np.testing.assert_allclose(hess, want, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(want))))
 

@@ -19,10 +19,12 @@ jax.config.update("jax_enable_x64", True)
 
 
 def _solve(problem, solver, t1, n, *, ts=None, **kwargs):
+    # The step as an array and one step cap: runs of up to 248 steps share one compiled
+    # program.
     saveat = diffrax.SaveAt(t1=ts is None, ts=ts, solver_state=True)
     return diffrax.diffeqsolve(
-        problem.term, solver, problem.t0, t1, (t1 - problem.t0) / n, problem.y0,
-        args=problem.args, saveat=saveat, max_steps=n + 8, **kwargs,
+        problem.term, solver, problem.t0, t1, jnp.asarray((t1 - problem.t0) / n), problem.y0,
+        args=problem.args, saveat=saveat, max_steps=max(256, n + 8), **kwargs,
     )
 
 
