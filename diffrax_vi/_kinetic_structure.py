@@ -16,6 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._numpy_eval import Unsupported, evaluate_jaxpr
+
 __all__ = ["KineticStructure", "evaluated_now", "kinetic_structure", "used_inputs"]
 
 
@@ -113,25 +115,45 @@ def _kinetic_structure(t, q, dynamic, static) -> KineticStructure | None:
 
 
 def evaluated_now(fn, static, inputs):
-    """`fn(*inputs)` for NumPy `inputs`, computed now even while a solve is being traced: as
-    one program compiled ahead of time (a compiled executable runs on its arguments; a call
-    of `jax.jit` would be staged into the trace, and eager evaluation would compile every
-    operation on its own). The executable is kept per program (`fn`'s code), term settings
+    """`fn(*inputs)` for NumPy `inputs`, computed now even while a solve is being traced: its
+    jaxpr evaluated in NumPy where its primitives allow (`_numpy_eval`: no program compiled),
+    else as one program compiled ahead of time (a compiled executable runs on its arguments;
+    a call of `jax.jit` would be staged into the trace, and eager evaluation would compile
+    every operation on its own). Either is kept per program (`fn`'s code), term settings
     `static` (where hashable) and input shapes."""
     shapes = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), inputs)
     leaves, tree = jax.tree_util.tree_flatten(shapes)
     try:
         key = (fn.__code__, static, tree, tuple(leaves))
-        compiled = _COMPILED.get(key)
-    except TypeError:  # a term with unhashable settings: compiled for this call
-        key, compiled = None, None
-    if compiled is None:
-        compiled = jax.jit(fn).lower(*shapes).compile()
+        program = _PROGRAMS.get(key)
+    except TypeError:  # a term with unhashable settings: read for this call
+        key, program = None, None
+    if program is None:
+        program = _NowProgram(fn, shapes)
         if key is not None:
-            if len(_COMPILED) >= 64:
-                _COMPILED.pop(next(iter(_COMPILED)))
-            _COMPILED[key] = compiled
-    return compiled(*inputs)
+            if len(_PROGRAMS) >= 64:
+                _PROGRAMS.pop(next(iter(_PROGRAMS)))
+            _PROGRAMS[key] = program
+    return program(inputs)
 
 
-_COMPILED: dict = {}
+class _NowProgram:
+    """`fn` at inputs of the given shapes: in NumPy, or compiled once NumPy cannot."""
+
+    def __init__(self, fn, shapes):
+        self.fn, self.shapes = fn, shapes
+        self.jaxpr, out_shapes = jax.make_jaxpr(fn, return_shape=True)(*shapes)
+        self.out_tree = jax.tree_util.tree_structure(out_shapes)
+        self.compiled = None
+
+    def __call__(self, inputs):
+        if self.compiled is None:
+            try:
+                flat = evaluate_jaxpr(self.jaxpr, *jax.tree_util.tree_leaves(inputs))
+                return jax.tree_util.tree_unflatten(self.out_tree, flat)
+            except Unsupported:
+                self.compiled = jax.jit(self.fn).lower(*self.shapes).compile()
+        return self.compiled(*inputs)
+
+
+_PROGRAMS: dict = {}

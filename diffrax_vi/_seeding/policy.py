@@ -318,11 +318,13 @@ class Seeder(eqx.Module):
             dim = ctx.q0.shape[0]
             # Constants of the compiled step, not traced: the span built on them is then
             # computed once, when the step is traced (`VariableProjection.span`).
-            with jax.ensure_compile_time_eval():
-                if isinstance(ctx.basis, ShallowNetBasis):
+            if isinstance(ctx.basis, ShallowNetBasis):
+                with jax.ensure_compile_time_eval():
                     hidden = rule.parameters(ctx.basis, dim, ctx.q0.dtype)
-                else:  # a linear ansatz: its span has no hidden layer to choose
-                    hidden = ctx.basis.zeros(dim, ctx.q0.dtype)
+            else:  # a linear ansatz: its span has no hidden layer to choose
+                # zeros in NumPy, of the placeholder's structure (no eager programs)
+                shapes = jax.eval_shape(lambda: ctx.basis.zeros(dim, ctx.q0.dtype))
+                hidden = jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), shapes)
             start = self._projected_start(ctx, *self._continued_or_constant(ctx, record, warm))
         else:
             seed = jax.lax.cond(
