@@ -125,15 +125,20 @@ def test_its_step_is_a_root_of_the_step_equations(name):
     solver = dvi.CGVI(6, root_finder=ENGINE)
     term, y0, args = _problem(name)
     ctx = solver.step_context(term, 0.0, CASES[name][1], y0, args)
-    engine = solver.seeder.engine(ctx)
+    engine = solver.seeder.engine(ctx)  # decided from the concrete context
     span = engine.span
     hints = StepHints(update=engine_update(engine), max_iterations=100)
-    z, result, _, _ = one_step_solve(
-        JacobianFreeIteration(), lambda z, a: solver.formulation.reduced_residual_and_forces(
-            z, (a[0], span, None), fused=True),
-        engine_start(engine, ctx, start_at_rest(ctx)), (ctx,), step_options(hints))
+
+    @eqx.filter_jit  # one program (op by op, the solve compiled some 90)
+    def solve_and_residual(ctx):
+        z, result, _, _ = one_step_solve(
+            JacobianFreeIteration(), lambda z, a: solver.formulation.reduced_residual_and_forces(
+                z, (a[0], span, None), fused=True),
+            engine_start(engine, ctx, start_at_rest(ctx)), (ctx,), step_options(hints))
+        return result, solver.formulation.reduced_residual(z, (ctx, span, None))
+
+    result, (r, c) = solve_and_residual(ctx)
     assert result == optx.RESULTS.successful
-    r, c = solver.formulation.reduced_residual(z, (ctx, span, None))
     scale = 1 + max(float(jnp.max(jnp.abs(y0[0]))), float(jnp.max(jnp.abs(y0[1]))))
     assert max(float(jnp.max(jnp.abs(r))), float(jnp.max(jnp.abs(c)))) <= (
         64 * np.finfo(np.float64).eps * scale
