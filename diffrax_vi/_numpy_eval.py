@@ -164,7 +164,6 @@ _RULES = {
     "reduce_min": _reduce(np.min),
     "dot_general": _dot_general,
     "copy": lambda x: np.array(x),
-    "copy_p": lambda x: np.array(x),
 }
 
 # Primitives that call a program of their own, found in this parameter.

@@ -139,3 +139,25 @@ def test_a_solve_compiles_no_program_for_its_kinetic_matrix(name):
     assert all(program.compiled is None for program in kinetic._PROGRAMS.values())
     # diffrax's own eager programs aside (a result code and a dtype cast), nothing compiled
     assert len(compiled) <= 2, compiled
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float16])
+@pytest.mark.parametrize("name", ["kepler", "double_pendulum"])
+def test_a_low_precision_program_stays_in_its_dtype(name, dtype):
+    """In float32 and float16 the NumPy values keep the working dtype and agree with XLA's to
+    a few rounding units of it (XLA may compute float16 in float32 and round once; NumPy
+    rounds each operation)."""
+    problem = getattr(problems, name)(dtype=dtype)
+    term, args = problem.term, problem.args
+    q = problem.y0[0] + jnp.asarray([0.1, -0.2], dtype)
+    v = jnp.asarray([0.3, 0.7], dtype)
+
+    def mass(q, v):
+        return jax.hessian(lambda v: term(jnp.zeros((), dtype), q, v, args))(v)
+
+    ours, theirs = _in_numpy_and_compiled(mass, q, v)
+    assert ours[0].dtype == dtype
+    scale = max(1.0, float(np.max(np.abs(np.asarray(theirs[0], np.float64)))))
+    np.testing.assert_allclose(np.asarray(ours[0], np.float64),
+                               np.asarray(theirs[0], np.float64),
+                               rtol=0, atol=16 * float(jnp.finfo(dtype).eps) * scale)
